@@ -1,0 +1,1 @@
+"""Explicit geometric map (EGM): reference pairs, triangulation, retrieval, save/load."""

@@ -1,0 +1,1 @@
+"""Evaluation: pose errors, recall tables, results files."""

@@ -1,0 +1,1 @@
+"""Features stage: SIFT keypoints, canonical patches, the JAX descriptor, matching."""

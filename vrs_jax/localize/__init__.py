@@ -1,0 +1,1 @@
+"""Localization: patch rays, patch rendering, PnP seed and refinement, localize()."""

@@ -1,0 +1,1 @@
+"""Implicit learning map (ILM): Mip-NeRF per cluster of reference cameras."""
