@@ -1,0 +1,132 @@
+"""Matching: against a brute-force numpy reference with masks; mutual and ratio behaviour;
+degenerate sizes; jit."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from vrs_jax.features.matching import match, match_jit, pairwise_distances
+
+
+def _ref(dq, mq, dr, mr, ratio, mutual, max_dist=None):
+    """Loop-by-loop reference in float64."""
+    nq = len(dq)
+    idx = np.zeros(nq, np.int64)
+    valid = np.zeros(nq, bool)
+    dist = np.full(nq, np.inf)
+    D = np.linalg.norm(dq[:, None].astype(np.float64) - dr[None].astype(np.float64), axis=-1)
+    for q in range(nq):
+        if not mq[q]:
+            continue
+        cand = [(D[q, r], r) for r in range(len(dr)) if mr[r]]
+        if not cand:
+            continue
+        cand.sort()
+        d1, r1 = cand[0]
+        idx[q], dist[q], ok = r1, d1, True
+        if ratio is not None and len(cand) > 1:
+            ok &= d1 < ratio * cand[1][0]
+        if mutual:
+            back = min((D[qq, r1], qq) for qq in range(nq) if mq[qq])[1]
+            ok &= back == q
+        if max_dist is not None:
+            ok &= d1 <= max_dist
+        valid[q] = ok
+    return idx, valid, dist
+
+
+def _data(rng, nq, nr, d=16, p_mask=0.2):
+    dq = rng.normal(size=(nq, d)).astype(np.float32)
+    dr = rng.normal(size=(nr, d)).astype(np.float32)
+    # plant near-duplicates so that many queries have a clear match
+    k = min(nq, nr) // 2
+    dr[:k] = dq[:k] + 0.1 * rng.normal(size=(k, d)).astype(np.float32)
+    return dq, rng.random(nq) > p_mask, dr, rng.random(nr) > p_mask
+
+
+@pytest.mark.parametrize("ratio,mutual,max_dist", [(0.8, True, None), (0.8, False, None),
+                                                   (None, True, None), (None, False, None),
+                                                   (0.95, True, 3.0)])
+def test_against_bruteforce_reference(ratio, mutual, max_dist):
+    rng = np.random.default_rng(0)
+    for nq, nr in [(30, 40), (25, 7), (5, 3)]:
+        dq, mq, dr, mr = _data(rng, nq, nr)
+        idx, valid, dist = match_jit(dq, mq, dr, mr, ratio, mutual, max_dist)
+        ridx, rvalid, rdist = _ref(dq, mq, dr, mr, ratio, mutual, max_dist)
+        assert idx.dtype == np.int32 and valid.dtype == bool and idx.shape == (nq,)
+        np.testing.assert_array_equal(np.asarray(valid), rvalid)
+        has = np.isfinite(rdist)
+        np.testing.assert_array_equal(np.asarray(idx)[has], ridx[has])
+        np.testing.assert_allclose(np.asarray(dist), rdist, rtol=1e-4, atol=1e-4)
+        assert not np.any(np.asarray(valid) & ~mq), "masked queries never match"
+        assert np.all(mr[np.asarray(idx)[np.asarray(valid)]]), "masked references never chosen"
+
+
+def test_mutual_check_keeps_only_the_closer_query():
+    dr = np.array([[0.0, 0.0], [10.0, 0.0]], np.float32)
+    dq = np.array([[0.1, 0.0], [0.5, 0.0]], np.float32)  # both nearest to r0; q0 closer
+    ones = np.ones(2, bool)
+    idx, valid, _ = match(dq, ones, dr, ones, ratio=None, mutual=True)
+    np.testing.assert_array_equal(np.asarray(idx), [0, 0])
+    np.testing.assert_array_equal(np.asarray(valid), [True, False])
+    _, valid, _ = match(dq, ones, dr, ones, ratio=None, mutual=False)
+    np.testing.assert_array_equal(np.asarray(valid), [True, True])
+    # masking q0 out makes q1 the mutual partner of r0
+    _, valid, _ = match(dq, np.array([False, True]), dr, ones, ratio=None, mutual=True)
+    np.testing.assert_array_equal(np.asarray(valid), [False, True])
+
+
+def test_ratio_test_rejects_ambiguous_matches():
+    dr = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 50.0]], np.float32)
+    dq = np.array([[0.9, 0.0], [0.0, 49.0]], np.float32)  # q0: d1 0.9, d2 1.1 -> ambiguous
+    m = np.ones(3, bool)
+    _, valid, dist = match(dq, m[:2], dr, m, ratio=0.8, mutual=False)
+    np.testing.assert_array_equal(np.asarray(valid), [False, True])
+    np.testing.assert_allclose(np.asarray(dist), [0.9, 1.0], atol=1e-5)
+    _, valid, _ = match(dq, m[:2], dr, m, ratio=0.9, mutual=False)  # 0.9 < 0.9*1.1 = 0.99
+    np.testing.assert_array_equal(np.asarray(valid), [True, True])
+    # masking the distractor r1 removes the ambiguity
+    _, valid, _ = match(dq, m[:2], dr, np.array([True, False, True]), ratio=0.8, mutual=False)
+    np.testing.assert_array_equal(np.asarray(valid), [True, True])
+
+
+def test_degenerate_sizes():
+    dq = np.random.default_rng(1).normal(size=(4, 8)).astype(np.float32)
+    mq = np.ones(4, bool)
+    # one reference: no second neighbour, ratio test off, mutual decides
+    idx, valid, dist = match_jit(dq, mq, dq[:1], np.ones(1, bool), 0.8)
+    np.testing.assert_array_equal(np.asarray(idx), 0)
+    np.testing.assert_array_equal(np.asarray(valid), [True, False, False, False])
+    assert np.isfinite(np.asarray(dist)).all()
+    # no reference
+    idx, valid, dist = match(dq, mq, np.zeros((0, 8), np.float32), np.zeros(0, bool))
+    assert idx.shape == (4,) and not np.asarray(valid).any() and np.isinf(np.asarray(dist)).all()
+    # all references masked
+    idx, valid, dist = match_jit(dq, mq, dq, np.zeros(4, bool), 0.8)
+    assert not np.asarray(valid).any() and np.isinf(np.asarray(dist)).all()
+    # no query
+    idx, valid, dist = match(np.zeros((0, 8), np.float32), np.zeros(0, bool), dq, mq)
+    assert idx.shape == valid.shape == dist.shape == (0,)
+
+
+def test_traced_ratio_under_jit_and_vmap():
+    rng = np.random.default_rng(2)
+    dq, mq, dr, mr = _data(rng, 12, 15)
+    f = jax.jit(lambda r: match(dq, mq, dr, mr, r, True))
+    for r in (0.6, 0.8, 0.95):
+        np.testing.assert_array_equal(np.asarray(f(r)[1]), _ref(dq, mq, dr, mr, r, True)[1])
+    # vmap over a batch of query sets (e.g. several queries against one rendered set)
+    dqs = np.stack([dq, dq[::-1]])
+    mqs = np.stack([mq, mq[::-1]])
+    idx, valid, _ = jax.vmap(lambda a, b: match(a, b, dr, mr, 0.8, True))(dqs, mqs)
+    np.testing.assert_array_equal(np.asarray(valid[1]), _ref(dqs[1], mqs[1], dr, mr, 0.8, True)[1])
+
+
+def test_pairwise_distances():
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(5, 7)), rng.normal(size=(6, 7))
+    ref = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    np.testing.assert_allclose(np.asarray(pairwise_distances(a, b)), ref, rtol=1e-5)
+    assert float(np.asarray(pairwise_distances(a, a)).diagonal().max()) < 1e-3

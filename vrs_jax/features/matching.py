@@ -1,0 +1,87 @@
+"""Descriptor matching in JAX with fixed shapes and masks: mutual nearest neighbour + ratio test.
+
+Distances are Euclidean (for the unit RootSIFT descriptors of descriptor.py that is the
+Hellinger distance of the histograms). Padding rows are excluded by masks, so a padded batch
+of images matches without retracing.
+
+Ratio test (Lowe 2004): a query keeps its nearest reference only if
+``d1 < ratio * d2``, d2 being the distance to the second nearest VALID reference. When fewer
+than two references are valid (including Nr < 2 by shape), there is no second neighbour:
+d2 is +inf and the test passes, i.e. the ratio test is off and only mutuality (and the
+optional max_dist) decide. With no valid reference at all nothing matches.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+# Lowe's value for SIFT (rejects 90% of false matches while keeping 95% of correct ones in
+# his experiments); with the mutual check on top it is on the permissive side, which suits
+# rendered patches whose descriptors are noisier than real ones. Callers may tune it.
+DEFAULT_RATIO = 0.8
+
+
+def pairwise_distances(a, b):
+    """[Na, D], [Nb, D] -> [Na, Nb] Euclidean distances (clamped >= 0 before the sqrt)."""
+    a = jnp.asarray(a, jnp.float32)
+    b = jnp.asarray(b, jnp.float32)
+    d2 = (jnp.sum(a * a, -1)[:, None] + jnp.sum(b * b, -1)[None, :]
+          - 2.0 * jnp.matmul(a, b.T, precision="highest"))
+    return jnp.sqrt(jnp.maximum(d2, 0.0))
+
+
+@functools.partial(jax.jit, static_argnames="mutual")
+def match(desc_q, mask_q, desc_r, mask_r, ratio: float | None = DEFAULT_RATIO,
+          mutual: bool = True, max_dist: float | None = None):
+    """Match query descriptors to reference descriptors.
+
+    Args:
+      desc_q: [Nq, D] query descriptors.  mask_q: [Nq] bool, False rows never match.
+      desc_r: [Nr, D] reference descriptors.  mask_r: [Nr] bool, False rows are never chosen.
+      ratio: Lowe's ratio threshold on distances (d1 < ratio * d2); None disables the test
+        (then static: it changes the traced program). See the module docstring for Nr < 2.
+      mutual: also require that q is the nearest valid query of its reference (static).
+      max_dist: optional absolute bound on d1 (static None or a float).
+    Returns:
+      idx: [Nq] int32 index into the references of each query's nearest valid reference
+        (0 when it has none).
+      valid: [Nq] bool, the match passes every test (and both rows are unmasked).
+      dist: [Nq] float32 distance to that nearest reference (+inf when the query is masked
+        or no reference is valid).
+    Ties go to the lowest index (numpy's argmin rule). Jitted (mutual static; ratio/max_dist
+    traced floats or None), and usable inside other jitted or vmapped functions.
+    """
+    desc_q = jnp.asarray(desc_q, jnp.float32)
+    desc_r = jnp.asarray(desc_r, jnp.float32)
+    mask_q = jnp.asarray(mask_q, bool)
+    mask_r = jnp.asarray(mask_r, bool)
+    nq, nr = desc_q.shape[0], desc_r.shape[0]
+    if nr == 0 or nq == 0:  # static shapes: nothing to match
+        return (jnp.zeros((nq,), jnp.int32), jnp.zeros((nq,), bool),
+                jnp.full((nq,), jnp.inf, jnp.float32))
+    inf = jnp.float32(jnp.inf)
+    d = pairwise_distances(desc_q, desc_r)
+    d = jnp.where(mask_q[:, None] & mask_r[None, :], d, inf)
+    idx = jnp.argmin(d, axis=1).astype(jnp.int32)
+    d1 = jnp.take_along_axis(d, idx[:, None], axis=1)[:, 0]
+    valid = jnp.isfinite(d1)
+    if ratio is not None:
+        if nr >= 2:
+            d_wo = jnp.where(jnp.arange(nr)[None, :] == idx[:, None], inf, d)
+            d2 = jnp.min(d_wo, axis=1)
+        else:
+            d2 = jnp.full((nq,), inf)
+        # d2 == inf (fewer than two valid references): the test passes, see docstring
+        valid &= (d1 < ratio * d2) | jnp.isinf(d2)
+    if mutual:
+        back = jnp.argmin(d, axis=0).astype(jnp.int32)  # [Nr] nearest valid query
+        valid &= back[idx] == jnp.arange(nq, dtype=jnp.int32)
+    if max_dist is not None:
+        valid &= d1 <= max_dist
+    return idx, valid, d1
+
+
+match_jit = match  # backwards-compatible name; ``match`` itself is jitted
