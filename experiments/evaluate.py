@@ -23,6 +23,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from experiments.common import parse_opts
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results
@@ -33,29 +34,6 @@ def _load_scene(fmt: str, root: str, opts: dict):
     from vrs_jax.data.readers import load_scene  # raises VrsError for unknown formats/options
 
     return load_scene(fmt, root, **opts)
-
-
-def _parse_value(text: str):
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
-def parse_opts(items: list[str]) -> dict:
-    """``["key=value", ...]`` -> {key: int | float | bool | str}."""
-    opts = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise VrsError(f"--opt expects KEY=VALUE, got {item!r}")
-        opts[key.strip().replace("-", "_")] = _parse_value(value.strip())
-    return opts
 
 
 def match_names(result_names: list[str], query_names: list[str]

@@ -19,3 +19,36 @@ def shared_path(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared data not available: {p}")
     return p
+
+
+# ----------------------------------------------------------------------------- EGM (helper E)
+
+SMALL_SYNTHETIC = dict(width=160, height=120, n_reference=24, n_query=8)
+"""A small synthetic room (2 s to render): 24 references, 8 queries at 160x120."""
+
+
+@pytest.fixture(scope="session")
+def small_synthetic_scene(tmp_path_factory) -> Path:
+    """Folder of a small synthetic scene in the 7Scenes layout (generated once per session)."""
+    import dataclasses
+
+    from vrs_jax.data import synthetic
+
+    cfg = dataclasses.replace(synthetic.get_config("default"), **SMALL_SYNTHETIC)
+    return synthetic.generate(tmp_path_factory.mktemp("small_synthetic") / "room", cfg)
+
+
+# ----------------------------------------------------------------------------- maps (localize)
+
+
+@pytest.fixture(scope="session")
+def tiny_map(small_synthetic_scene, tmp_path_factory) -> Path:
+    """A complete map (EGM + baseline + tiny NeRF) of the small synthetic scene, test config."""
+    from vrs_jax import pipeline
+    from vrs_jax.data.readers import load_scene
+
+    scene = load_scene("7scenes", small_synthetic_scene)
+    out = tmp_path_factory.mktemp("tiny_map") / "map"
+    pipeline.build_map(scene, out, pipeline.get_config("test"), progress=False,
+                       log=lambda s: None)
+    return out

@@ -1,0 +1,61 @@
+"""Command-line pieces shared by the experiments: dataset arguments and scene loading."""
+
+from __future__ import annotations
+
+import argparse
+
+from vrs_jax.errors import VrsError
+
+
+def _parse_value(text: str):
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_opts(items: list[str]) -> dict:
+    """``["key=value", ...]`` -> {key: int | float | bool | str}."""
+    opts = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise VrsError(f"--opt expects KEY=VALUE, got {item!r}")
+        opts[key.strip().replace("-", "_")] = _parse_value(value.strip())
+    return opts
+
+
+def add_scene_args(p: argparse.ArgumentParser, fmt: str | None = None) -> None:
+    """--format (unless fixed), --root, --query-every, --downscale, --opt."""
+    if fmt is None:
+        p.add_argument("--format", required=True, dest="fmt",
+                       help="dataset format: 7scenes, cambridge, aachen, nerf, llff, colmap")
+    p.add_argument("--root", required=True, help="dataset root folder (its official layout)")
+    p.add_argument("--query-every", type=int, default=None, metavar="N",
+                   help="hold out every N-th image as a query (formats without a split)")
+    p.add_argument("--downscale", type=int, default=None, metavar="N",
+                   help="read images downscaled by N (intrinsics scaled to match)")
+    p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="further reader option, repeatable (e.g. --opt pgt=PATH for 7Scenes)")
+
+
+def scene_opts(args: argparse.Namespace) -> dict:
+    """Reader options from the parsed --query-every/--downscale/--opt arguments."""
+    opts = parse_opts(args.opt)
+    if args.query_every is not None:
+        opts["query_every"] = args.query_every
+    if args.downscale is not None:
+        opts["downscale"] = args.downscale
+    return opts
+
+
+def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None):
+    """The Scene named by the parsed arguments (VrsError for bad input)."""
+    from vrs_jax.data.readers import load_scene
+
+    return load_scene(fmt or args.fmt, args.root, **scene_opts(args))

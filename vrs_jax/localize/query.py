@@ -1,0 +1,98 @@
+"""Query preparation on the host: decode, detect, describe, global descriptor -> Query pytree.
+
+Everything here is host work (image decoding, OpenCV's detector) or a jitted call with padded
+shapes; the result is a pytree of fixed shapes that :func:`vrs_jax.localize.localize` takes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from vrs_jax import geometry
+from vrs_jax.data.images import read_gray
+from vrs_jax.egm.retrieval import Vocabulary, global_descriptor
+from vrs_jax.features.extract import extract_features
+from vrs_jax.localize.config import LocalizeConfig
+
+Array = Any
+
+
+@flax.struct.dataclass
+class Query:
+    """One query image, ready for ``localize`` (fixed shapes; Kq = cfg.query_max_keypoints).
+
+    keypoints: [Kq, 4] (x, y, scale, angle) as detected (COLMAP convention).
+    points2d: [Kq, 2] keypoint positions with the query's lens distortion removed (what PnP
+      sees with ``K`` alone).
+    desc: [Kq, D] unit descriptors; mask: [Kq] bool valid rows (a prefix).
+    global_desc: [G] unit global descriptor.  K: [3, 3] intrinsics.
+    """
+
+    keypoints: Array
+    points2d: Array
+    desc: Array
+    mask: Array
+    global_desc: Array
+    K: Array
+
+
+def undistort_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """Pixel coordinates [M, 2] with distortion removed (same K): what a pinhole would see."""
+    if dist is None or not np.any(dist):
+        return np.asarray(uv, np.float64)
+    rays = geometry.unproject(np.asarray(K, np.float64), np.asarray(uv, np.float64),
+                              np.asarray(dist, np.float64))
+    uvu, _ = geometry.project(np.asarray(K, np.float64), np.eye(3), np.zeros(3), rays)
+    return uvu
+
+
+def prepare_query(gray: np.ndarray, K: np.ndarray, dist: np.ndarray | None, vocab: Vocabulary,
+                  cfg: LocalizeConfig) -> Query:
+    """Keypoints, descriptors and global descriptor of a query image (host function).
+
+    Args:
+      gray: [H, W] float32 grey image in [0, 1].
+      K: [3, 3] intrinsics; dist: [5] OpenCV distortion or None.
+      vocab: the map's VLAD vocabulary.
+      cfg: LocalizeConfig (keypoint, patch and descriptor settings; padding size).
+    Returns:
+      Query with arrays padded to cfg.query_max_keypoints. An image with no keypoints gives an
+      all-False mask (localize then returns a flagged fallback result).
+    """
+    kq = cfg.query_max_keypoints
+    kp, desc = extract_features(gray, cfg.keypoints, cfg.patches, cfg.descriptor)
+    kp, desc = kp[:kq], desc[:kq]
+    n = len(kp)
+    d = cfg.descriptor.dim
+    kp_pad = np.zeros((kq, 4), np.float32)
+    kp_pad[:, 2] = 1.0
+    kp_pad[:n] = kp
+    desc_pad = np.zeros((kq, d), np.float32)
+    desc_pad[:n] = desc
+    mask = np.zeros(kq, bool)
+    mask[:n] = True
+    pts = np.zeros((kq, 2), np.float32)
+    if n:
+        pts[:n] = undistort_points(kp[:, :2], K, dist)
+    g = global_descriptor(desc, None, vocab)
+    return Query(keypoints=jnp.asarray(kp_pad), points2d=jnp.asarray(pts),
+                 desc=jnp.asarray(desc_pad), mask=jnp.asarray(mask),
+                 global_desc=jnp.asarray(g, jnp.float32),
+                 K=jnp.asarray(np.asarray(K, np.float32)))
+
+
+def load_query(path: str | Path, K: np.ndarray, dist: np.ndarray | None, vocab: Vocabulary,
+               cfg: LocalizeConfig, size: tuple[int, int] | None = None) -> Query:
+    """Read an image file (VrsError if unreadable) and prepare it as a Query."""
+    return prepare_query(read_gray(path, size=size), K, dist, vocab, cfg)
+
+
+def stack_queries(queries: list[Query]) -> Query:
+    """Stack Queries of one config into a batch (leading axis) for ``jax.vmap(localize)``."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *queries)
