@@ -1,0 +1,200 @@
+"""NerfConfig: the single source of truth for the implicit map's hyper-parameters.
+
+Named configurations (``get_config(name)``):
+
+- ``paper``: the VRS-NeRF paper's implicit map is Mip-NeRF with 128 coarse + 128 fine
+  samples, a batch of 1024 rays and Adam; its remaining values were never published, so
+  they are mip-NeRF's own (Barron et al. 2021, ``configs/blender.gin``): an 8 x 256 MLP
+  with the input skip after layer 4, a 1-layer 128-wide view-dependent head, IPE degrees
+  0..16, view encoding degree 4, lr 5e-4 -> 5e-6 log-linear with a 2500-step warm-up at
+  0.01x, coarse loss weight 0.1.
+- ``cpu-small``: the fastest configuration to reach a useful quality on 2 CPU cores in
+  minutes (measured on lego 200x200, see the field comments and README's NeRF section).
+- ``test``: tiny, for unit tests only.
+
+Every field's comment gives the reason for its value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+from vrs_jax.errors import VrsError
+
+
+@dataclasses.dataclass(frozen=True)
+class NerfConfig:
+    """Mip-NeRF model, sampling, training and scene-preparation settings."""
+
+    name: str = "paper"
+
+    # --- MLP (mip-NeRF's architecture; one MLP shared by the coarse and fine levels)
+    net_depth: int = 8  # trunk layers (mip-NeRF / NeRF)
+    net_width: int = 256  # trunk width (mip-NeRF / NeRF)
+    skip_layer: int = 4  # re-inject the encoded input after this layer; 0: no skip
+    net_depth_condition: int = 1  # layers of the view-dependent colour head
+    net_width_condition: int = 128  # its width (mip-NeRF)
+    use_viewdirs: bool = True  # view-dependent colour (specularities)
+
+    # --- encodings
+    min_deg_point: int = 0  # lowest IPE frequency 2^0: coordinates in [-pi, pi] don't wrap
+    max_deg_point: int = 16  # mip-NeRF; IPE itself switches off what the footprint can't see
+    deg_view: int = 4  # view-direction encoding degrees (mip-NeRF)
+
+    # --- sampling
+    num_samples_coarse: int = 128  # the paper: 128 coarse + 128 fine
+    num_samples_fine: int = 128
+    lindisp: bool = False  # sample linearly in disparity (forward-facing scenes)
+    resample_padding: float = 0.01  # mip-NeRF: keeps a few fine samples everywhere
+    density_bias: float = -1.0  # mip-NeRF: softplus(raw - 1) starts nearly transparent
+    rgb_padding: float = 0.001  # mip-NeRF: sigmoid widened so 0 and 1 are reachable
+    density_noise: float = 0.0  # regularising noise on raw density (mip-NeRF LLFF: 1)
+
+    # --- optimisation
+    batch_size: int = 1024  # rays per step per cluster (the paper)
+    lr_init: float = 5e-4  # Adam as mip-NeRF: 5e-4 -> 5e-6 log-linear
+    lr_final: float = 5e-6
+    lr_delay_steps: int = 2500  # mip-NeRF Blender warm-up
+    lr_delay_mult: float = 0.01
+    max_steps: int = 1_000_000  # horizon of the lr decay (mip-NeRF trains 1M steps)
+    adam_b1: float = 0.9
+    adam_b2: float = 0.999
+    adam_eps: float = 1e-8
+    grad_max_norm: float = 0.0  # 0: no clipping (mip-NeRF)
+    coarse_loss_mult: float = 0.1  # loss = 0.1 coarse + fine (mip-NeRF)
+
+    # --- scene preparation
+    norm_radius: float = math.pi  # sampled region mapped into [-norm_radius, norm_radius]^3
+    near_far_percentiles: tuple[float, float] = (1.0, 99.0)  # of the depth prior's samples
+    near_far_margin: float = 0.2  # near *= 1 - m, far *= 1 + m around those percentiles
+    n_clusters: int = 1  # K-means clusters of reference cameras (Aachen: 16 in the paper)
+    cluster_overlap: float = 0.2  # image also joins cluster b if |x-c_b| <= 1.2 |x-c_own|
+
+    # --- loop / rendering
+    render_chunk: int = 4096  # rays per jitted chunk when rendering full views
+    eval_every: int = 500  # steps between held-out PSNR estimates
+    eval_rays: int = 4096  # held-out pixels used for those estimates (fixed subset)
+    checkpoint_every: int = 1000  # steps between orbax checkpoints
+    keep_checkpoints: int = 2
+    seed: int = 0
+
+    @property
+    def num_levels(self) -> int:
+        """Coarse + fine (a config with no fine samples renders one level)."""
+        return 2 if self.num_samples_fine > 0 else 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> NerfConfig:
+        names = {f.name for f in dataclasses.fields(NerfConfig)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise VrsError(f"unknown NeRF config fields: {', '.join(unknown)}")
+        d = dict(d)
+        if "near_far_percentiles" in d:
+            d["near_far_percentiles"] = tuple(d["near_far_percentiles"])
+        return NerfConfig(**d)
+
+
+PAPER = NerfConfig(name="paper")
+
+# cpu-small: measured on lego 200x200 (2 shared CPU cores); see README for the numbers.
+CPU_SMALL = dataclasses.replace(
+    PAPER,
+    name="cpu-small",
+    net_depth=4,  # 4 x 128 trunk: ~1/8 of the paper's FLOPs per sample, still enough capacity
+    net_width=128,  # for a 200 px scene in 10 minutes (wider/deeper nets are slower per PSNR)
+    skip_layer=0,  # no skip: a 4-layer trunk doesn't need it
+    net_width_condition=64,
+    max_deg_point=10,  # 200 px footprints blank out IPE degrees > ~9 anyway (saves features)
+    deg_view=2,  # lego/fern are nearly Lambertian; 2 degrees suffice
+    num_samples_coarse=48,  # 48 + 48: samples are the main cost; fewer blur thin parts
+    num_samples_fine=48,
+    batch_size=1024,
+    lr_init=2e-3,  # a small net trained briefly tolerates (and needs) a 4x higher lr
+    lr_final=5e-5,
+    lr_delay_steps=100,  # short warm-up: avoids an early collapse to empty density
+    lr_delay_mult=0.1,
+    max_steps=6000,  # lr horizon ~ the steps 10 minutes allow on 2 cores
+    eval_every=250,
+    checkpoint_every=500,
+)
+
+TEST = dataclasses.replace(
+    PAPER,
+    name="test",
+    net_depth=2,
+    net_width=32,
+    skip_layer=0,
+    net_depth_condition=1,
+    net_width_condition=16,
+    max_deg_point=6,
+    deg_view=2,
+    num_samples_coarse=16,
+    num_samples_fine=16,
+    batch_size=256,
+    lr_init=5e-3,
+    lr_final=5e-4,
+    lr_delay_steps=20,
+    lr_delay_mult=0.1,
+    max_steps=400,
+    render_chunk=1024,
+    eval_every=50,
+    eval_rays=512,
+    checkpoint_every=50,
+)
+
+CONFIGS: dict[str, NerfConfig] = {c.name: c for c in (PAPER, CPU_SMALL, TEST)}
+
+
+def get_config(name: str, **overrides: Any) -> NerfConfig:
+    """The named config, with field overrides (``get_config("cpu-small", n_clusters=4)``)."""
+    if name not in CONFIGS:
+        raise VrsError(f"unknown NeRF config {name!r}; choose from {', '.join(CONFIGS)}")
+    cfg = CONFIGS[name]
+    if overrides:
+        names = {f.name for f in dataclasses.fields(NerfConfig)}
+        bad = sorted(set(overrides) - names)
+        if bad:
+            raise VrsError(f"unknown NeRF config fields: {', '.join(bad)}")
+        cfg = dataclasses.replace(cfg, **overrides)
+    return cfg
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """CLI ``--set key=value`` pairs -> typed overrides (types from NerfConfig's fields)."""
+    out: dict[str, Any] = {}
+    fields = {f.name: f for f in dataclasses.fields(NerfConfig)}
+    defaults = NerfConfig()
+    for item in items or []:
+        if "=" not in item:
+            raise VrsError(f"--set expects key=value, got {item!r}")
+        key, val = item.split("=", 1)
+        key = key.strip().replace("-", "_")
+        if key not in fields:
+            raise VrsError(f"unknown NeRF config field {key!r}")
+        cur = getattr(defaults, key)
+        try:
+            if isinstance(cur, bool):
+                if val.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                    raise ValueError(val)
+                out[key] = val.lower() in ("1", "true", "yes")
+            elif isinstance(cur, int):
+                out[key] = int(val)
+            elif isinstance(cur, float):
+                out[key] = float(val)
+            elif isinstance(cur, tuple):
+                out[key] = tuple(float(v) for v in val.split(","))
+            else:
+                out[key] = val
+        except ValueError:
+            raise VrsError(f"bad value for {key}: {val!r}") from None
+    return out

@@ -1,0 +1,161 @@
+"""The implicit learning map (ILM): C per-cluster NeRFs stacked on a leading axis.
+
+Saved as ONE ``.npz`` file (written to a temporary name, then renamed: atomic) holding
+every array plus a JSON header with the format version and the full config, so a map is
+self-describing and its size on disk is simply the file size.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct, traverse_util
+
+from vrs_jax.errors import VrsError
+from vrs_jax.nerf.config import NerfConfig
+from vrs_jax.nerf.model import Field, select_field
+
+FORMAT_VERSION = 1
+_META = "__meta__"
+
+
+@struct.dataclass
+class ILM:
+    """Stacked per-cluster NeRFs and the data needed to pick the right one.
+
+    fields: Field with every leaf stacked [C, ...] (MLP params, per-cluster normalisation
+      centre [C, 3] and scale [C], background [C, 3]).
+    cluster_centers: [C, 3] K-means centres of the reference camera centres.
+    image_cluster: [N] int32 primary cluster of each reference image.
+    membership: [C, N] bool images each cluster was trained on.
+    near, far: [N] float32 per reference image (t = z-depth bounds used in training).
+    image_names: N reference image names (static).
+    config: the NerfConfig it was trained with (static).
+    """
+
+    fields: Field
+    cluster_centers: jax.Array
+    image_cluster: jax.Array
+    membership: jax.Array
+    near: jax.Array
+    far: jax.Array
+    image_names: tuple[str, ...] = struct.field(pytree_node=False, default=())
+    config: NerfConfig = struct.field(pytree_node=False, default=NerfConfig())
+
+    @property
+    def n_clusters(self) -> int:
+        return int(self.cluster_centers.shape[0])
+
+    def field(self, c: int | jax.Array) -> Field:
+        """Cluster c's Field (c may be traced)."""
+        return select_field(self.fields, c)
+
+    def cluster_of_image(self, name: str) -> int:
+        try:
+            return int(self.image_cluster[self.image_names.index(name)])
+        except ValueError:
+            raise VrsError(f"image {name!r} is not a reference image of this map") from None
+
+    def cluster_of_position(self, centers: np.ndarray) -> np.ndarray:
+        """Nearest cluster of camera centres [M, 3] (e.g. queries) -> [M] int32."""
+        d2 = np.sum((np.asarray(centers)[:, None] - np.asarray(self.cluster_centers)[None]) ** 2,
+                    axis=-1)
+        return np.argmin(d2, axis=1).astype(np.int32)
+
+
+def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
+    out = {f"params/{k}": np.asarray(v) for k, v in
+           traverse_util.flatten_dict(jax.device_get(ilm.fields.params), sep="/").items()}
+    for name in ("center", "scale", "background"):
+        out[name] = np.asarray(getattr(ilm.fields, name))
+    for name in ("cluster_centers", "image_cluster", "membership", "near", "far"):
+        out[name] = np.asarray(getattr(ilm, name))
+    return out
+
+
+def save_ilm(path: str | Path, ilm: ILM) -> Path:
+    """Write the map to ``path`` (.npz), atomically. Returns the path."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    arrays = _flatten(ilm)
+    meta = {"format": "vrs_jax.ilm", "format_version": FORMAT_VERSION,
+            "config": ilm.config.to_dict(), "image_names": list(ilm.image_names)}
+    arrays[_META] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    tmp = p.with_name(p.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, p)
+    return p
+
+
+def load_ilm(path: str | Path) -> ILM:
+    """Read a map written by :func:`save_ilm`; VrsError for a missing, corrupt or
+    other-version file."""
+    p = Path(path)
+    if not p.is_file():
+        raise VrsError("ILM map file not found", p)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise VrsError(f"corrupt or unreadable ILM map ({type(e).__name__})", p) from None
+    if _META not in arrays:
+        raise VrsError("not an ILM map (no header)", p)
+    try:
+        meta = json.loads(arrays.pop(_META).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise VrsError("corrupt ILM map header", p) from None
+    if meta.get("format") != "vrs_jax.ilm":
+        raise VrsError("not an ILM map", p)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise VrsError(f"ILM map format version {meta.get('format_version')} is not supported "
+                       f"(expected {FORMAT_VERSION}); retrain the map", p)
+    cfg = NerfConfig.from_dict(meta["config"])
+    try:
+        params = traverse_util.unflatten_dict(
+            {k[len("params/"):]: jnp.asarray(v) for k, v in arrays.items()
+             if k.startswith("params/")}, sep="/")
+        fields = Field(params=params, center=jnp.asarray(arrays["center"]),
+                       scale=jnp.asarray(arrays["scale"]),
+                       background=jnp.asarray(arrays["background"]))
+        ilm = ILM(fields=fields, cluster_centers=jnp.asarray(arrays["cluster_centers"]),
+                  image_cluster=jnp.asarray(arrays["image_cluster"]),
+                  membership=jnp.asarray(arrays["membership"]),
+                  near=jnp.asarray(arrays["near"]), far=jnp.asarray(arrays["far"]),
+                  image_names=tuple(meta["image_names"]), config=cfg)
+    except KeyError as e:
+        raise VrsError(f"ILM map lacks array {e}", p) from None
+    _check_shapes(ilm, p)
+    return ilm
+
+
+def _check_shapes(ilm: ILM, p: Path) -> None:
+    from vrs_jax.nerf.model import init_params
+
+    c = ilm.n_clusters
+    expect = jax.eval_shape(lambda: init_params(jax.random.key(0), ilm.config))
+    got = jax.tree.map(lambda x: tuple(x.shape[1:]), ilm.fields.params)
+    want = jax.tree.map(lambda x: tuple(x.shape), expect)
+    ok = jax.tree.structure(got) == jax.tree.structure(want) and all(
+        a == b for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True))
+    lead = {x.shape[0] for x in jax.tree.leaves(ilm.fields)}
+    if not ok or lead != {c}:
+        raise VrsError("ILM map arrays do not match its config (corrupt file?)", p)
+
+
+def map_bytes(path: str | Path) -> int:
+    """Size on disk of a saved map."""
+    return Path(path).stat().st_size
+
+
+def ilm_summary(ilm: ILM) -> dict[str, Any]:
+    return {"clusters": ilm.n_clusters, "images": len(ilm.image_names),
+            "config": ilm.config.name,
+            "params": int(sum(x.size for x in jax.tree.leaves(ilm.fields.params)))}

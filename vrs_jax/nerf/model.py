@@ -1,0 +1,259 @@
+"""The Mip-NeRF MLP (flax.linen) and cone-ray rendering with explicit parameter pytrees.
+
+A :class:`Field` is one cluster's renderable NeRF: MLP parameters plus the scene
+normalisation of that cluster and its background colour. Rays come in WORLD coordinates;
+``render_rays`` normalises them inside (``x' = (x - center) * scale``), so callers never
+see the normalised frame. The ILM stacks Fields on a leading cluster axis; select one with
+:func:`select_field` (works under jit with a traced index) or vmap over it.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from vrs_jax.nerf import mipnerf
+from vrs_jax.nerf.config import NerfConfig
+
+Array = jax.Array
+
+
+class MipMLP(nn.Module):
+    """Mip-NeRF's MLP: trunk on IPE features -> density; bottleneck + view head -> colour.
+
+    The view head's first layer is split (``W [b; v] = W_b b + W_v v``) so the view
+    encoding is multiplied once per ray instead of once per sample: the same function as
+    mip-NeRF's concatenation, fewer FLOPs.
+    """
+
+    net_depth: int
+    net_width: int
+    skip_layer: int
+    net_depth_condition: int
+    net_width_condition: int
+    use_viewdirs: bool
+
+    @nn.compact
+    def __call__(self, x: Array, view: Array | None) -> tuple[Array, Array]:
+        """x: [R, S, Dx] IPE features; view: [R, Dv] view encoding -> raw rgb [R, S, 3],
+        raw density [R, S]."""
+        dense = functools.partial(nn.Dense, kernel_init=jax.nn.initializers.glorot_uniform())
+        # Flatten [R, S, D] -> [R*S, D]: plain 2-D GEMMs (a 3-D dot_general's weight gradient
+        # contracts two axes, which XLA:CPU runs markedly slower).
+        n_rays, n_samples = x.shape[:2]
+        x = x.reshape(n_rays * n_samples, x.shape[-1])
+        inputs = x
+        for i in range(self.net_depth):
+            x = nn.relu(dense(self.net_width, name=f"trunk_{i}")(x))
+            if self.skip_layer > 0 and i % self.skip_layer == 0 and i > 0:
+                x = jnp.concatenate([x, inputs], axis=-1)
+        raw_density = dense(1, name="density")(x)[..., 0].reshape(n_rays, n_samples)
+        if self.use_viewdirs:
+            bottleneck = dense(self.net_width, name="bottleneck")(x)
+            h = dense(self.net_width_condition, name="view_0")(bottleneck)
+            h_view = dense(self.net_width_condition, use_bias=False, name="view_0_dir")(view)
+            h = h.reshape(n_rays, n_samples, -1) + h_view[:, None, :]
+            x = nn.relu(h.reshape(n_rays * n_samples, -1))
+            for i in range(1, self.net_depth_condition):
+                x = nn.relu(dense(self.net_width_condition, name=f"view_{i}")(x))
+        raw_rgb = dense(3, name="rgb")(x).reshape(n_rays, n_samples, 3)
+        return raw_rgb, raw_density
+
+
+def make_mlp(cfg: NerfConfig) -> MipMLP:
+    return MipMLP(cfg.net_depth, cfg.net_width, cfg.skip_layer, cfg.net_depth_condition,
+                  cfg.net_width_condition, cfg.use_viewdirs)
+
+
+def feature_dims(cfg: NerfConfig) -> tuple[int, int]:
+    """(IPE feature size, view encoding size)."""
+    return 6 * (cfg.max_deg_point - cfg.min_deg_point), 3 * (1 + 2 * cfg.deg_view)
+
+
+def init_params(key: Array, cfg: NerfConfig) -> Any:
+    """MLP parameter pytree of one cluster."""
+    dx, dv = feature_dims(cfg)
+    return make_mlp(cfg).init(key, jnp.zeros((1, 1, dx)), jnp.zeros((1, dv)))["params"]
+
+
+def init_stacked_params(key: Array, cfg: NerfConfig, n_clusters: int) -> Any:
+    """Parameters of ``n_clusters`` independent MLPs stacked on a leading axis [C, ...]."""
+    return jax.vmap(lambda k: init_params(k, cfg))(jax.random.split(key, n_clusters))
+
+
+def count_params(params: Any) -> int:
+    return int(sum(x.size for x in jax.tree.leaves(params)))
+
+
+def mlp_flops_per_sample(cfg: NerfConfig) -> int:
+    """Multiply-adds x 2 of one MLP evaluation (forward), view head amortised per ray."""
+    dx, _ = feature_dims(cfg)
+    w = cfg.net_width
+    macs, d_in = 0, dx
+    for i in range(cfg.net_depth):
+        macs += d_in * w
+        d_in = w + (dx if cfg.skip_layer > 0 and i % cfg.skip_layer == 0 and i > 0 else 0)
+    macs += d_in  # density
+    if cfg.use_viewdirs:
+        macs += d_in * w + w * cfg.net_width_condition
+        macs += (cfg.net_depth_condition - 1) * cfg.net_width_condition ** 2
+        macs += cfg.net_width_condition * 3
+    else:
+        macs += d_in * 3
+    return 2 * macs
+
+
+@struct.dataclass
+class Field:
+    """One cluster's NeRF (or C of them with every leaf stacked on a leading axis).
+
+    params: MLP parameter pytree.
+    center: [3] world point mapped to the origin of the normalised frame.
+    scale: [] normalised units per world unit.
+    background: [3] colour composited behind the content (white: Blender scenes).
+    """
+
+    params: Any
+    center: Array
+    scale: Array
+    background: Array
+
+
+def select_field(fields: Field, c: Array | int) -> Field:
+    """Cluster ``c``'s Field from a stacked Field (``c`` may be traced)."""
+    return jax.tree.map(lambda x: jnp.take(x, c, axis=0), fields)
+
+
+def normalize_rays(field: Field, origins: Array, directions: Array, radii: Array
+                   ) -> tuple[Array, Array, Array]:
+    """World rays -> normalised frame. t is unchanged: o' + t d' = (o + t d - c) s.
+
+    origins, directions: [..., 3]; radii: [...] -> same shapes.
+    """
+    s = field.scale
+    return (origins - field.center) * s, directions * s, radii * s
+
+
+def _eval_mlp(params: Any, cfg: NerfConfig, means: Array, covs: Array, view_enc: Array,
+              key: Array | None, randomized: bool) -> tuple[Array, Array]:
+    """IPE + MLP + activations: means/covs [R, S, 3], view_enc [R, Dv] -> rgb, density."""
+    feats = mipnerf.integrated_pos_enc(means, covs, cfg.min_deg_point, cfg.max_deg_point)
+    raw_rgb, raw_density = make_mlp(cfg).apply({"params": params}, feats, view_enc)
+    if randomized and cfg.density_noise > 0 and key is not None:
+        raw_density = raw_density + cfg.density_noise * jax.random.normal(
+            key, raw_density.shape, raw_density.dtype)
+    rgb = jax.nn.sigmoid(raw_rgb) * (1 + 2 * cfg.rgb_padding) - cfg.rgb_padding
+    density = jax.nn.softplus(raw_density + cfg.density_bias)
+    return rgb, density
+
+
+def _view_encoding(cfg: NerfConfig, directions: Array) -> Array:
+    viewdirs = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    return mipnerf.pos_enc(viewdirs, 0, cfg.deg_view, append_identity=True)
+
+
+def render_levels(field: Field, origins: Array, directions: Array, radii: Array, near: Array,
+                  far: Array, key: Array, cfg: NerfConfig, randomized: bool
+                  ) -> list[dict[str, Array]]:
+    """Coarse-to-fine rendering of world-frame cone rays with ONE cluster's Field.
+
+    Args:
+      origins, directions: [R, 3] world frame (directions not necessarily unit).
+      radii: [R] cone radius at t = 1 (world units); near, far: [R] in t units.
+      key: PRNG key (stratification, resampling and density noise when randomized).
+    Returns:
+      one dict per level (coarse first) with rgb [R, 3], depth [R], acc [R],
+      weights [R, S], t_vals [R, S + 1].
+    """
+    o, d, r = normalize_rays(field, origins, directions, radii)
+    view_enc = _view_encoding(cfg, d)
+    keys = jax.random.split(key, 4)
+    t_vals, (means, covs) = mipnerf.sample_along_rays(
+        keys[0], o, d, r, near, far, cfg.num_samples_coarse, randomized, cfg.lindisp)
+    out = []
+    for level in range(cfg.num_levels):
+        if level > 0:
+            t_vals, (means, covs) = mipnerf.resample_along_rays(
+                keys[1], o, d, r, t_vals, out[-1]["weights"], cfg.num_samples_fine,
+                randomized, cfg.resample_padding)
+        rgb, density = _eval_mlp(field.params, cfg, means, covs, view_enc, keys[2 + level],
+                                 randomized)
+        res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
+        res["t_vals"] = t_vals
+        out.append(res)
+    return out
+
+
+def render_rays(field: Field, origins: Array, directions: Array, radii: Array, near: Array,
+                far: Array, key: Array | None, cfg: NerfConfig, randomized: bool = False
+                ) -> dict[str, Array]:
+    """Render world-frame cone rays with one cluster's Field (the finest level).
+
+    Args:
+      field: one cluster's Field (see :func:`select_field`).
+      origins, directions: [R, 3]; radii, near, far: [R] (see :func:`render_levels`).
+      key: PRNG key, or None for deterministic rendering (randomized must be False).
+    Returns:
+      dict(rgb [R, 3], depth [R] (t units along ``directions``), acc [R]).
+    """
+    if key is None:
+        key = jax.random.key(0)
+    res = render_levels(field, origins, directions, radii, near, far, key, cfg, randomized)[-1]
+    return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"]}
+
+
+def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: Array,
+                       near: Array, far: Array, key: Array | None, cfg: NerfConfig,
+                       num_samples: int, randomized: bool = False) -> dict[str, Array]:
+    """Single-level rendering inside a narrow, depth-guided interval [near, far].
+
+    For patch rays whose surface depth is known (the EGM point of the keypoint), a few
+    samples around that depth replace coarse + fine sampling: one MLP pass of
+    ``num_samples`` samples per ray instead of coarse + fine. The MLP is the shared one.
+
+    Args:
+      origins, directions: [R, 3] world frame; radii, near, far: [R].
+      num_samples: samples per ray (static), e.g. 16.
+    Returns:
+      dict(rgb [R, 3], depth [R], acc [R]); the background fills what the interval misses.
+    """
+    if key is None:
+        key = jax.random.key(0)
+    o, d, r = normalize_rays(field, origins, directions, radii)
+    k0, k1 = jax.random.split(key)
+    t_vals, (means, covs) = mipnerf.sample_along_rays(k0, o, d, r, near, far, num_samples,
+                                                      randomized, lindisp=False)
+    rgb, density = _eval_mlp(field.params, cfg, means, covs, _view_encoding(cfg, d), k1,
+                             randomized)
+    res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
+    return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"]}
+
+
+def nerf_loss(levels: list[dict[str, Array]], rgb_target: Array, cfg: NerfConfig,
+              mask: Array | None = None) -> tuple[Array, Array]:
+    """Mip-NeRF loss: coarse_loss_mult x MSE(coarse) + MSE(fine).
+
+    Args:
+      levels: output of :func:`render_levels`; rgb_target: [R, 3];
+      mask: optional [R] ray weights (1 valid, 0 padding).
+    Returns:
+      (loss [], fine-level MSE [] for PSNR).
+    """
+    mses = []
+    for res in levels:
+        se = jnp.mean((res["rgb"] - rgb_target) ** 2, axis=-1)
+        if mask is None:
+            mses.append(jnp.mean(se))
+        else:
+            mses.append(jnp.sum(se * mask) / jnp.maximum(jnp.sum(mask), 1.0))
+    loss = mses[-1] + cfg.coarse_loss_mult * sum(mses[:-1])
+    return loss, mses[-1]
+
+
+def mse_to_psnr(mse: Array) -> Array:
+    return -10.0 * jnp.log10(mse)

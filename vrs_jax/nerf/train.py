@@ -1,0 +1,478 @@
+"""Training the per-cluster NeRFs: one jitted step vmapped (and sharded) over clusters.
+
+State is a pytree whose leaves all carry a leading cluster axis [C, ...] (parameters,
+Adam state, PRNG key data) plus a scalar step. Each cluster draws its own ray batch from
+its own image list every step. The cluster axis is sharded over the available devices
+(``jax.sharding.Mesh`` with one axis ``"clusters"`` + ``NamedSharding``); the vmapped
+clusters never communicate, so the sharded step computes exactly the unsharded one.
+
+Checkpoints: orbax ``CheckpointManager`` under ``<out>/checkpoints``. Orbax writes each
+step into a temporary directory and renames it when complete, so a checkpoint is either
+whole or absent (atomic); resume restores step, parameters, optimizer state and RNG key,
+which makes a resumed run bit-for-bit the continuation of the uninterrupted one (the step
+function is deterministic). A NaN/inf guard checks the loss and the updated parameters
+after every step and stops before anything non-finite is saved.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm.auto import tqdm
+
+from vrs_jax.data.scene import Scene
+from vrs_jax.errors import VrsError
+from vrs_jax.nerf import clusters as clusters_lib
+from vrs_jax.nerf import data as data_lib
+from vrs_jax.nerf.config import NerfConfig
+from vrs_jax.nerf.ilm import ILM
+from vrs_jax.nerf.model import (Field, init_stacked_params, mse_to_psnr, nerf_loss,
+                                render_levels, render_rays)
+
+Array = jax.Array
+CLUSTER_AXIS = "clusters"
+
+
+class TrainingDiverged(VrsError):
+    """The loss or the parameters became NaN/inf; the last good checkpoint is kept."""
+
+
+class TrainState(NamedTuple):
+    """step: [] int32; params, opt_state: pytrees [C, ...]; key: [C, 2] uint32 key data."""
+
+    step: Array
+    params: Any
+    opt_state: Any
+    key: Array
+
+
+@struct.dataclass
+class ClusterData:
+    """Per-cluster constants of training: image lists (padded) and normalisation.
+
+    members [C, M] int32, counts [C] int32, center [C, 3], scale [C], background [C, 3].
+    """
+
+    members: Array
+    counts: Array
+    center: Array
+    scale: Array
+    background: Array
+
+
+# ----------------------------------------------------------------------------- optimiser
+
+
+def lr_schedule(cfg: NerfConfig) -> Callable[[Array], Array]:
+    """mip-NeRF's schedule: log-linear lr_init -> lr_final over max_steps, times a
+    sine warm-up from lr_delay_mult to 1 over lr_delay_steps."""
+
+    def schedule(step):
+        step = jnp.asarray(step, jnp.float32)
+        t = jnp.clip(step / cfg.max_steps, 0.0, 1.0)
+        lr = jnp.exp(math.log(cfg.lr_init) * (1 - t) + math.log(cfg.lr_final) * t)
+        if cfg.lr_delay_steps > 0:
+            w = jnp.sin(0.5 * jnp.pi * jnp.clip(step / cfg.lr_delay_steps, 0.0, 1.0))
+            lr = lr * (cfg.lr_delay_mult + (1 - cfg.lr_delay_mult) * w)
+        return lr
+
+    return schedule
+
+
+def make_optimizer(cfg: NerfConfig) -> optax.GradientTransformation:
+    adam = optax.adam(lr_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps)
+    if cfg.grad_max_norm > 0:
+        return optax.chain(optax.clip_by_global_norm(cfg.grad_max_norm), adam)
+    return adam
+
+
+def init_state(cfg: NerfConfig, n_clusters: int, seed: int | None = None) -> TrainState:
+    """Fresh state for C clusters (independent initialisations and keys)."""
+    key = jax.random.key(cfg.seed if seed is None else seed)
+    k_init, k_train = jax.random.split(key)
+    params = init_stacked_params(k_init, cfg, n_clusters)
+    opt_state = jax.vmap(make_optimizer(cfg).init)(params)
+    keys = jax.random.key_data(jax.random.split(k_train, n_clusters))
+    return TrainState(jnp.zeros((), jnp.int32), params, opt_state, keys)
+
+
+# ----------------------------------------------------------------------------- step
+
+
+def make_train_step(cfg: NerfConfig, donate: bool = True
+                    ) -> Callable[[TrainState, ClusterData, data_lib.RayBank],
+                                  tuple[TrainState, dict[str, Array]]]:
+    """The jitted training step for all clusters at once.
+
+    Returns ``step(state, clusters, bank) -> (state, metrics)`` with metrics of shape [C]:
+    loss, psnr (fine level, training batch), finite (loss and new params all finite).
+    """
+    optimizer = make_optimizer(cfg)
+
+    def one_cluster(params, opt_state, key_data, members, count, center, scale, background,
+                    bank):
+        key = jax.random.wrap_key_data(key_data)
+        key, k_batch, k_render = jax.random.split(key, 3)
+        batch = data_lib.sample_rays(bank, members, count, k_batch, cfg.batch_size)
+
+        def loss_fn(p):
+            field = Field(p, center, scale, background)
+            levels = render_levels(field, batch["origins"], batch["directions"],
+                                   batch["radii"], batch["near"], batch["far"], k_render, cfg,
+                                   randomized=True)
+            return nerf_loss(levels, batch["rgb"], cfg)
+
+        (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        finite = jnp.isfinite(loss) & jnp.all(jnp.stack(
+            [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
+        metrics = {"loss": loss, "psnr": mse_to_psnr(mse), "finite": finite}
+        return params, opt_state, jax.random.key_data(key), metrics
+
+    vmapped = jax.vmap(one_cluster, in_axes=(0, 0, 0, 0, 0, 0, 0, 0, None))
+
+    def step(state: TrainState, cl: ClusterData, bank: data_lib.RayBank):
+        params, opt_state, keys, metrics = vmapped(
+            state.params, state.opt_state, state.key, cl.members, cl.counts, cl.center,
+            cl.scale, cl.background, bank)
+        return TrainState(state.step + 1, params, opt_state, keys), metrics
+
+    return jax.jit(step, donate_argnums=(0,) if donate else ())
+
+
+# ----------------------------------------------------------------------------- sharding
+
+
+def cluster_mesh(n_clusters: int, devices: list | None = None) -> Mesh:
+    """A 1-D mesh over as many devices as evenly divide the cluster count."""
+    devices = list(jax.devices() if devices is None else devices)
+    d = max(k for k in range(1, len(devices) + 1) if n_clusters % k == 0)
+    return Mesh(np.array(devices[:d]), (CLUSTER_AXIS,))
+
+
+def shard_clusters(tree: Any, mesh: Mesh) -> Any:
+    """Place every leaf's leading (cluster) axis across the mesh; scalars are replicated."""
+
+    def put(x):
+        spec = PartitionSpec(CLUSTER_AXIS) if np.ndim(x) > 0 else PartitionSpec()
+        return jax.device_put(x, NamedSharding(mesh, spec))
+
+    return jax.tree.map(put, tree)
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+    return jax.tree.map(lambda x: jax.device_put(x, NamedSharding(mesh, PartitionSpec())), tree)
+
+
+def shard_state(state: TrainState, mesh: Mesh) -> TrainState:
+    return TrainState(replicate(state.step, mesh), shard_clusters(state.params, mesh),
+                      shard_clusters(state.opt_state, mesh), shard_clusters(state.key, mesh))
+
+
+# ----------------------------------------------------------------------------- preparation
+
+
+@dataclasses.dataclass
+class Prepared:
+    """Everything training needs, built once from a Scene."""
+
+    cfg: NerfConfig
+    refs: Scene  # posed reference images used for training
+    held_out: Scene  # posed query images used for evaluation (may be empty)
+    near: np.ndarray  # [N_refs]
+    far: np.ndarray
+    held_near: np.ndarray  # [N_held]
+    held_far: np.ndarray
+    clustering: clusters_lib.Clustering
+    cluster_data: ClusterData
+    bank: data_lib.RayBank
+    background: np.ndarray  # [3]
+    held_images: list[np.ndarray]
+    held_cluster: np.ndarray  # [N_held]
+    eval_batch: dict[str, np.ndarray] | None  # rays grouped per cluster [C, M] + mask
+
+    def ilm(self, params: Any) -> ILM:
+        cd = self.cluster_data
+        fields = Field(params=params, center=cd.center, scale=cd.scale,
+                       background=cd.background)
+        return ILM(fields=fields, cluster_centers=jnp.asarray(self.clustering.centers,
+                                                              jnp.float32),
+                   image_cluster=jnp.asarray(self.clustering.primary),
+                   membership=jnp.asarray(self.clustering.membership),
+                   near=jnp.asarray(self.near), far=jnp.asarray(self.far),
+                   image_names=tuple(self.refs.names), config=self.cfg)
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"images": list(self.refs.names), "clusters": int(len(self.clustering.centers))}
+
+
+def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float | None = None,
+            points3d: np.ndarray | None = None) -> Prepared:
+    """Split, near/far, clusters, normalisation, images -> device ray bank, eval rays."""
+    data_lib.check_scene_for_training(scene)
+    posed = np.asarray(scene.has_pose)
+    refs = scene.subset(~np.asarray(scene.is_query) & posed)
+    held = scene.subset(np.asarray(scene.is_query) & posed)
+    n_near, n_far = data_lib.scene_near_far(scene, near, far, points3d,
+                                            cfg.near_far_percentiles, cfg.near_far_margin)
+    ref_idx = np.flatnonzero(~np.asarray(scene.is_query) & posed)
+    held_idx = np.flatnonzero(np.asarray(scene.is_query) & posed)
+    r_near, r_far = n_near[ref_idx], n_far[ref_idx]
+    if cfg.n_clusters > len(refs):
+        raise VrsError(f"{cfg.n_clusters} clusters requested but only {len(refs)} reference "
+                       "images", scene.root)
+    clustering = clusters_lib.cluster_cameras(refs.centers, cfg.n_clusters,
+                                              cfg.cluster_overlap, seed=cfg.seed)
+    clusters_lib.check_nonempty(clustering.membership)
+    members, counts = data_lib.pad_members(clustering.membership)
+    background = np.asarray(scene.background if scene.background is not None else (0, 0, 0),
+                            np.float32)
+    centers, scales = [], []
+    for c in range(cfg.n_clusters):
+        sel = clustering.membership[c]
+        pts = data_lib.frustum_points(refs.K[sel], refs.R[sel], refs.t[sel], refs.sizes[sel],
+                                      r_near[sel], r_far[sel])
+        ctr, s = data_lib.normalization(pts, cfg.norm_radius)
+        centers.append(ctr)
+        scales.append(s)
+    cd = ClusterData(members=jnp.asarray(members), counts=jnp.asarray(counts),
+                     center=jnp.asarray(np.stack(centers), jnp.float32),
+                     scale=jnp.asarray(np.asarray(scales), jnp.float32),
+                     background=jnp.asarray(np.tile(background, (cfg.n_clusters, 1))))
+    ref_images = data_lib.load_images(refs, background)
+    bank = data_lib.build_bank(refs, r_near, r_far, ref_images)
+    del ref_images
+    held_images = data_lib.load_images(held, background) if len(held) else []
+    held_cluster = (clusters_lib.assign_to_clusters(held.centers, clustering.centers)
+                    if len(held) else np.zeros(0, np.int32))
+    h_near, h_far = n_near[held_idx], n_far[held_idx]
+    eval_batch = None
+    if len(held):
+        ev = data_lib.eval_rays(held, h_near, h_far, held_images, cfg.eval_rays, seed=cfg.seed)
+        eval_batch = group_by_cluster(ev, held_cluster[ev["image"]], cfg.n_clusters)
+    return Prepared(cfg, refs, held, r_near, r_far, h_near, h_far, clustering, cd, bank,
+                    background, held_images, held_cluster, eval_batch)
+
+
+def group_by_cluster(rays: dict[str, np.ndarray], cluster: np.ndarray, n_clusters: int
+                     ) -> dict[str, np.ndarray]:
+    """Rays [M, ...] -> [C, Mmax, ...] padded per cluster, plus mask [C, Mmax]."""
+    idx = [np.flatnonzero(cluster == c) for c in range(n_clusters)]
+    mmax = max(1, max(len(i) for i in idx))
+    out: dict[str, np.ndarray] = {}
+    for k, v in rays.items():
+        arr = np.zeros((n_clusters, mmax) + v.shape[1:], v.dtype)
+        for c, i in enumerate(idx):
+            arr[c, : len(i)] = v[i]
+            if len(i) and len(i) < mmax:
+                arr[c, len(i):] = v[i[0]]  # valid padding rays (masked out of the metric)
+        out[k] = arr
+    mask = np.zeros((n_clusters, mmax), np.float32)
+    for c, i in enumerate(idx):
+        mask[c, : len(i)] = 1
+    out["mask"] = mask
+    return out
+
+
+def make_eval_fn(cfg: NerfConfig) -> Callable[[Any, ClusterData, dict[str, Array]], Array]:
+    """Jitted held-out PSNR over grouped eval rays: (params [C], clusters, batch) -> PSNR []."""
+
+    def one(params, center, scale, background, b):
+        field = Field(params, center, scale, background)
+
+        def chunk(rays):
+            return render_rays(field, rays["origins"], rays["directions"], rays["radii"],
+                               rays["near"], rays["far"], None, cfg)["rgb"]
+
+        n = b["origins"].shape[0]
+        size = min(cfg.render_chunk, n)
+        pad = (-n) % size
+        rays = {k: jnp.concatenate([b[k], jnp.repeat(b[k][:1], pad, axis=0)])
+                for k in ("origins", "directions", "radii", "near", "far")}
+        rays = jax.tree.map(lambda x: x.reshape((-1, size) + x.shape[1:]), rays)
+        rgb = jax.lax.map(chunk, rays).reshape(-1, 3)[:n]
+        se = jnp.mean((rgb - b["rgb"]) ** 2, axis=-1)
+        return jnp.sum(se * b["mask"]), jnp.sum(b["mask"])
+
+    def fn(params, cl: ClusterData, batch):
+        se, cnt = jax.vmap(one)(params, cl.center, cl.scale, cl.background, batch)
+        return mse_to_psnr(jnp.sum(se) / jnp.maximum(jnp.sum(cnt), 1.0))
+
+    return jax.jit(fn)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def checkpoint_manager(ckpt_dir: str | Path, cfg: NerfConfig) -> ocp.CheckpointManager:
+    """Synchronous orbax manager (atomic per step: tmp dir + rename on completion)."""
+    opts = ocp.CheckpointManagerOptions(max_to_keep=cfg.keep_checkpoints, create=True,
+                                        enable_async_checkpointing=False)
+    return ocp.CheckpointManager(Path(ckpt_dir).absolute(), options=opts,
+                                 item_names=("state", "meta"))
+
+
+def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[str, Any]
+                    ) -> None:
+    step = int(state.step)
+    tree = {"step": state.step, "params": state.params, "opt_state": state.opt_state,
+            "key": state.key}
+    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
+                                            meta=ocp.args.JsonSave(meta)), force=True)
+    mngr.wait_until_finished()
+
+
+def restore_checkpoint(mngr: ocp.CheckpointManager, template: TrainState,
+                       step: int | None = None) -> tuple[TrainState, dict[str, Any]]:
+    """Restore the latest (or given) step into the structure/shardings of ``template``.
+
+    Raises VrsError for a corrupt or incompatible checkpoint.
+    """
+    step = mngr.latest_step() if step is None else step
+    where = Path(str(mngr.directory)) / str(step)
+    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct,
+                            {"step": template.step, "params": template.params,
+                             "opt_state": template.opt_state, "key": template.key})
+    try:
+        out = mngr.restore(step, args=ocp.args.Composite(
+            state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()))
+    except Exception as e:  # orbax/tensorstore raise many types for damaged files
+        msg = str(e).splitlines()[0][:160] if str(e) else ""
+        raise VrsError(f"corrupt or incompatible checkpoint ({type(e).__name__}: {msg})",
+                       where) from None
+    tree, meta = out["state"], out["meta"]
+    leaves = jax.tree.leaves(tree)
+    if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves
+               if jnp.issubdtype(x.dtype, jnp.floating)):
+        raise VrsError("checkpoint holds non-finite values", where)
+    return TrainState(tree["step"], tree["params"], tree["opt_state"], tree["key"]), meta
+
+
+# ----------------------------------------------------------------------------- loop
+
+
+@dataclasses.dataclass
+class TrainResult:
+    state: TrainState
+    ilm: ILM
+    history: list[dict[str, float]]
+    steps_per_s: float
+    seconds: float
+    compile_s: float
+
+
+def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
+          minutes: float | None = None, resume: bool = True, progress: bool = True,
+          mesh: Mesh | None = None, log: Callable[[str], None] | None = None) -> TrainResult:
+    """Train until ``steps`` total steps or ``minutes`` of wall clock (whichever first).
+
+    Args:
+      prep: from :func:`prepare`.
+      out_dir: checkpoints go to ``out_dir/checkpoints`` (None: no checkpoints).
+      steps: total step count to reach (resume counts the steps already done).
+      minutes: wall-clock budget of this call (compilation included).
+      resume: continue from the latest checkpoint in out_dir when there is one.
+      mesh: device mesh for the cluster axis (default: all devices, see cluster_mesh).
+    Raises:
+      TrainingDiverged (a VrsError) when the loss or parameters become non-finite; the last
+      good checkpoint stays on disk.
+    """
+    cfg = prep.cfg
+    if steps is None and minutes is None:
+        steps = cfg.max_steps
+    log = log or (lambda s: tqdm.write(s))
+    t_start = time.perf_counter()
+    n_c = cfg.n_clusters
+    mesh = mesh or cluster_mesh(n_c)
+    state = init_state(cfg, n_c)
+    meta = {"config": cfg.to_dict(), "scene": prep.fingerprint()}
+    mngr = None
+    if out_dir is not None:
+        mngr = checkpoint_manager(Path(out_dir) / "checkpoints", cfg)
+        if resume and mngr.latest_step() is not None:
+            state, old = restore_checkpoint(mngr, state)
+            if json.dumps(old.get("config"), sort_keys=True) != json.dumps(
+                    meta["config"], sort_keys=True):
+                raise VrsError("checkpoint was trained with a different config; use another "
+                               "--out or --no-resume", Path(out_dir) / "checkpoints")
+            if old.get("scene") != meta["scene"]:
+                raise VrsError("checkpoint belongs to a different scene or clustering",
+                               Path(out_dir) / "checkpoints")
+            log(f"resumed from step {int(state.step)}")
+    state = shard_state(state, mesh)
+    cl = shard_clusters(prep.cluster_data, mesh)
+    bank = replicate(prep.bank, mesh)
+    step_fn = make_train_step(cfg)
+    eval_fn = make_eval_fn(cfg) if prep.eval_batch is not None else None
+    eval_batch = (shard_clusters(jax.tree.map(jnp.asarray, prep.eval_batch), mesh)
+                  if eval_fn else None)
+
+    start_step = int(state.step)
+    target = steps if steps is not None else 10**12
+    deadline = t_start + 60 * minutes if minutes is not None else math.inf
+    last_good = mngr.latest_step() if mngr else None
+    history: list[dict[str, float]] = []
+    bar = tqdm(total=(target - start_step) if steps is not None else None, disable=not progress,
+               desc=f"nerf[{cfg.name}]", dynamic_ncols=True, mininterval=1.0)
+    compile_s, t_loop, eval_s = 0.0, None, 0.0
+    steps_after_compile = start_step
+    held = math.nan
+    while int(state.step) < target and time.perf_counter() < deadline:
+        state, metrics = step_fn(state, cl, bank)
+        m = jax.device_get(metrics)
+        s = int(state.step)
+        if t_loop is None:  # first step includes compilation
+            t_loop = time.perf_counter()
+            compile_s = t_loop - t_start
+            steps_after_compile = s
+        if not np.all(m["finite"]):
+            bad = int(np.flatnonzero(~m["finite"])[0])
+            where = (f"last good checkpoint: step {last_good} in "
+                     f"{Path(out_dir) / 'checkpoints'}" if last_good is not None
+                     else "no checkpoint was saved yet")
+            bar.close()
+            raise TrainingDiverged(
+                f"training diverged at step {s} (cluster {bad}: loss {float(m['loss'][bad])}); "
+                f"stopped; {where}; try a lower lr_init")
+        rec = {"step": s, "loss": float(np.mean(m["loss"])), "psnr": float(np.mean(m["psnr"])),
+               "time": time.perf_counter() - t_start}
+        if eval_fn is not None and (s % cfg.eval_every == 0):
+            t_eval = time.perf_counter()
+            held = float(eval_fn(state.params, cl, eval_batch))
+            eval_s += time.perf_counter() - t_eval
+            rec["heldout_psnr"] = held
+            log(f"step {s}: train psnr {rec['psnr']:.2f} held-out psnr {held:.2f}")
+        history.append(rec)
+        bar.update(1)
+        bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
+                        val=f"{held:.2f}", refresh=False)
+        if mngr is not None and s % cfg.checkpoint_every == 0:
+            save_checkpoint(mngr, state, meta)
+            last_good = s
+    bar.close()
+    t_end = time.perf_counter()
+    done = int(state.step)
+    if mngr is not None and done != last_good and done > start_step:
+        save_checkpoint(mngr, state, meta)
+    # Training throughput: steps after the first (compiling) one, evaluation time excluded
+    # (the first evaluation's compilation is counted in it too).
+    timed_steps = done - steps_after_compile
+    loop_s = (t_end - t_loop - eval_s) if t_loop is not None else 0.0
+    sps = timed_steps / loop_s if loop_s > 0 else 0.0
+    params = jax.device_get(state.params)
+    return TrainResult(state, prep.ilm(jax.tree.map(jnp.asarray, params)), history, sps,
+                       t_end - t_start, compile_s)
