@@ -1,0 +1,538 @@
+"""Shared pieces of the benchmarks: the scenes, their maps, run records, tables and JSON.
+
+Every benchmark (``python -m benchmarks.NAME``) takes the same scene arguments
+(:func:`add_scene_args`): ``--scenes``, ``--config``, ``--nerf-minutes``, ``--work``,
+``--data-root``, ``--map NAME=DIR``, ``--max-queries``. Maps are built with
+:func:`vrs_jax.pipeline.build_map` into ``WORK/NAME-CONFIG/map`` and reused when they exist
+(``build_map`` skips finished work), so the suite pays for map building once.
+
+Scenes (:data:`SCENES`):
+
+- ``synthetic``: the embedded synthetic room (the demo's scene, 60 references + 20 queries
+  at 320x240), generated into ``WORK/synthetic/scene``;
+- ``fern``: LLFF fern (20 photos at 504x378), every 5th image a query;
+- ``lego``: NeRF synthetic lego (100 views at 200x200), every 8th image a query.
+
+Time budget of the suite with default arguments on 2 CPU cores (estimates; the map
+building is paid once): maps ~13 min (NeRF 5 + 3 + 3 min, EGMs ~1.5 min, synthetic scene
+~20 s), localize ~4 min, ablation ~3 min (reusing localize's runs), render ~3 min, figures
+~1 min, map_size seconds: ~24 min in all. Suggested order: map_size (builds the maps),
+localize, ablation, render, figures.
+
+The real scenes are read from ``--data-root`` (default ``$VRS_SHARED_DATA`` or the
+``shared/data`` folder beside the checkout) and skipped with a note when absent.
+
+Localization runs (per scene, mode, patch size, sampler, top-k, queries) are recorded as
+JSON under ``WORK/runs/NAME/``; a record is reused only when its key matches exactly: the
+same map files (path, size, modification time), the same LocalizeConfig, the same query
+list and the same vrs_jax source code (a hash of every ``vrs_jax/**/*.py`` file). So a
+benchmark can reuse another's measurement (the ablation's 15 x 15 and GT rows are the
+localize benchmark's) and a code change re-measures everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import hashlib
+import json
+import math
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vrs_jax.errors import VrsError
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_WORK = "outputs/bench_work"
+DEFAULT_JSON_DIR = "outputs/benchmarks"
+RUNS_VERSION = 1
+
+
+# ----------------------------------------------------------------------------- scenes
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    """A benchmark scene: where its data is and how to split it."""
+
+    name: str
+    fmt: str  # reader format (vrs_jax.data.readers)
+    parts: tuple[str, ...]  # path under --data-root; () for the generated synthetic scene
+    query_every: int | None  # hold out every N-th image as a query (formats without a split)
+    # NeRF training budget (minutes, 2 CPU cores, cpu-small) when the suite builds the map.
+    # The whole suite must finish in 30 minutes on 2 cores, map building included, so the
+    # three scenes share ~11 minutes of training: the synthetic scene gets most (it carries
+    # the accuracy claims); fern (16 references) and lego (88 at 200x200) get 3 each.
+    nerf_minutes: float
+    note: str
+
+
+SCENES: dict[str, SceneSpec] = {
+    "synthetic": SceneSpec("synthetic", "7scenes", (), None, 5.0,
+                           "embedded synthetic room, 60 references + 20 queries at 320x240"),
+    "fern": SceneSpec("fern", "llff", ("llff_fern", "data", "nerf_llff_data", "fern"), 5, 3.0,
+                      "LLFF fern, 20 photos at 504x378, every 5th a query"),
+    "lego": SceneSpec("lego", "nerf", ("nerf_synthetic_lego_200",), 8, 3.0,
+                      "NeRF synthetic lego, 100 views at 200x200, every 8th a query"),
+}
+
+
+def default_data_root() -> Path:
+    env = os.environ.get("VRS_SHARED_DATA")
+    return Path(env) if env else (REPO / ".." / "shared" / "data").resolve()
+
+
+def add_scene_args(p: argparse.ArgumentParser, default_scenes: Sequence[str]) -> None:
+    """The scene and map arguments every benchmark shares."""
+    p.add_argument("--scenes", default=",".join(default_scenes),
+                   help=f"comma-separated scenes among {', '.join(SCENES)} (scenes whose data "
+                        "is absent are skipped with a note)")
+    p.add_argument("--config", default="cpu-small",
+                   help="pipeline config of the maps the benchmark builds (paper, cpu-small, "
+                        "test)")
+    p.add_argument("--nerf-minutes", type=float, default=None,
+                   help="NeRF training budget per scene when a map is built (default per "
+                        "scene: " + ", ".join(f"{s.name} {s.nerf_minutes:g}"
+                                              for s in SCENES.values()) + " min)")
+    p.add_argument("--nerf-steps", type=int, default=None,
+                   help="NeRF training steps when a map is built (default: the config's)")
+    p.add_argument("--work", default=DEFAULT_WORK,
+                   help="folder of the benchmark maps, scenes and run records (reused)")
+    p.add_argument("--data-root", default=None,
+                   help="folder holding the real datasets (default: $VRS_SHARED_DATA or "
+                        "../shared/data beside the checkout)")
+    p.add_argument("--synthetic-root", default=None,
+                   help="use this synthetic scene folder (7Scenes layout) instead of "
+                        "generating the default one into WORK/synthetic/scene")
+    p.add_argument("--map", action="append", default=[], metavar="SCENE=DIR",
+                   help="use an existing map folder for a scene (e.g. "
+                        "synthetic=outputs/demo/map) instead of building one; repeatable")
+    p.add_argument("--max-queries", type=int, default=None,
+                   help="localize at most N queries per scene (evenly spaced; default all)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def parse_scenes(text: str) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [s for s in names if s not in SCENES]
+    if bad or not names:
+        raise VrsError(f"unknown scene(s) {', '.join(bad) or '(none)'}; choose from "
+                       f"{', '.join(SCENES)}")
+    return names
+
+
+def parse_maps(items: list[str]) -> dict[str, Path]:
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or name not in SCENES or not path:
+            raise VrsError(f"--map expects SCENE=DIR with SCENE in {', '.join(SCENES)}, "
+                           f"got {item!r}")
+        out[name] = Path(path)
+    return out
+
+
+@dataclasses.dataclass
+class SceneCtx:
+    """A scene ready to benchmark: its data, its map and the queries to localize."""
+
+    name: str
+    spec: SceneSpec
+    scene: Any  # vrs_jax.data.scene.Scene (references + queries)
+    queries: Any  # Scene of the queries used (possibly an evenly spaced subset)
+    map_dir: Path
+    m: Any  # pipeline.LoadedMap
+
+
+def _load_scene(spec: SceneSpec, root: Path):
+    from vrs_jax.data.readers import load_scene
+
+    opts = {"query_every": spec.query_every} if spec.query_every else {}
+    return load_scene(spec.fmt, root, **opts)
+
+
+def scene_root(name: str, args, log: Callable[[str], None] = print) -> Path | None:
+    """The dataset folder of a scene (generating the synthetic one), or None if absent."""
+    spec = SCENES[name]
+    if name == "synthetic":
+        if args.synthetic_root:
+            root = Path(args.synthetic_root)
+            if not root.is_dir():
+                raise VrsError("synthetic scene folder not found", root)
+            return root
+        from vrs_jax.data import synthetic
+
+        root = Path(args.work) / "synthetic" / "scene"
+        return synthetic.generate(root, synthetic.get_config("default"),
+                                  progress=not args.quiet)
+    root = Path(args.data_root) if args.data_root else default_data_root()
+    root = root.joinpath(*spec.parts)
+    if not root.exists():
+        log(f"[{name}] skipped: data not found at {root}")
+        return None
+    return root
+
+
+def evenly_spaced(n: int, k: int | None) -> np.ndarray:
+    """k indices spread evenly over range(n) (all of them when k is None or >= n)."""
+    if k is None or k >= n:
+        return np.arange(n)
+    if k < 1:
+        raise VrsError("--max-queries must be >= 1")
+    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))
+
+
+def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneCtx | None:
+    """Load (building if needed) the map of scene ``name``; None if its data is absent."""
+    from vrs_jax import pipeline
+
+    spec = SCENES[name]
+    maps = parse_maps(args.map)
+    if name in maps:
+        map_dir = maps[name]
+        meta_p = map_dir / "map.json"
+        if not meta_p.is_file():
+            raise VrsError("not a vrs-jax map folder (no map.json)", map_dir)
+        key = json.loads(meta_p.read_text()).get("key", {})
+        scene = _load_scene(dataclasses.replace(spec, fmt=key.get("format", spec.fmt)),
+                            Path(key["root"]))
+    else:
+        root = scene_root(name, args, log)
+        if root is None:
+            return None
+        scene = _load_scene(spec, root)
+        pcfg = pipeline.get_config(args.config)
+        map_dir = Path(args.work) / f"{name}-{pcfg.name}" / "map"
+        minutes = args.nerf_minutes if args.nerf_minutes is not None else spec.nerf_minutes
+        log(f"[{name}] map {map_dir} (built if missing; NeRF budget {minutes:g} min)")
+        pipeline.build_map(scene, map_dir, pcfg, progress=not args.quiet,
+                           log=lambda s: log(f"[{name}] {s}"), nerf_steps=args.nerf_steps,
+                           nerf_minutes=minutes)
+    m = pipeline.load_map(map_dir)
+    if set(m.egm.names) != set(scene.references().names):
+        raise VrsError(f"the map's reference images are not the {name} scene's references "
+                       "(another split or dataset?)", map_dir)
+    queries = scene.queries()
+    if len(queries) == 0:
+        raise VrsError("the scene has no query images", scene.root)
+    queries = queries.subset(evenly_spaced(len(queries), args.max_queries))
+    return SceneCtx(name, spec, scene, queries, map_dir, m)
+
+
+def prepare_scenes(args, log: Callable[[str], None] = print
+                   ) -> tuple[list[SceneCtx], list[dict[str, str]]]:
+    """Every scene of ``--scenes``: (ready scenes, skipped scenes with the reason)."""
+    ready, skipped = [], []
+    for name in parse_scenes(args.scenes):
+        ctx = prepare_scene(name, args, log)
+        if ctx is None:
+            skipped.append({"scene": name, "reason": "data not found"})
+        else:
+            ready.append(ctx)
+    return ready, skipped
+
+
+def map_info(ctx: SceneCtx) -> dict[str, Any]:
+    """What the JSON records about a map: folder, configs, training stats, sizes."""
+    m = ctx.m
+    stats = m.meta.get("stats", {})
+    return {"map_dir": str(ctx.map_dir), "pipeline_config": dataclasses.asdict(m.pcfg),
+            "nerf_config": m.ilm.config.to_dict(), "egm_config": m.egm_cfg.name,
+            "n_references": m.egm.num_images, "n_points3d": m.egm.num_points,
+            "k_max": m.egm.k_max,
+            "mean_keypoints_per_image": float(np.asarray(m.egm.kp_mask).sum(1).mean()),
+            "n_queries_used": len(ctx.queries), "n_queries_scene": int(ctx.scene.is_query.sum()),
+            "nerf_training": {k: v for k, v in stats.get("ilm", {}).items() if k != "history"},
+            "scene": ctx.spec.note}
+
+
+# ----------------------------------------------------------------------------- localization
+
+
+def patch_config(ctx: SceneCtx, size: int | None = None, mode: str | None = None):
+    """The map's patch config with another size P / mode (render mode may change them)."""
+    p = ctx.m.egm_cfg.features.patches
+    over = {k: v for k, v in (("size", size), ("mode", mode)) if v is not None}
+    return dataclasses.replace(p, **over) if over else p
+
+
+def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, **overrides):
+    """pipeline.localize_config with an optional patch size P (render mode only)."""
+    from vrs_jax import pipeline
+
+    if mode == "render" and size is not None:
+        overrides["patches"] = patch_config(ctx, size)
+    return pipeline.localize_config(ctx.m.pcfg, ctx.m.egm_cfg, mode, **overrides)
+
+
+def _file_stamp(p: Path) -> list:
+    st = p.stat()
+    return [str(p.resolve()), st.st_size, st.st_mtime_ns]
+
+
+def map_stamp(map_dir: Path) -> list:
+    d = Path(map_dir)
+    return [_file_stamp(d / "ilm.npz"), _file_stamp(d / "egm" / "egm.npz"),
+            _file_stamp(d / "egm_baseline" / "egm.npz")]
+
+
+_SOURCE_HASH: str | None = None
+
+
+def source_hash() -> str:
+    """sha256 of every vrs_jax source file and this module (a run record's code version)."""
+    global _SOURCE_HASH
+    if _SOURCE_HASH is None:
+        h = hashlib.sha256()
+        files = sorted((REPO / "vrs_jax").rglob("*.py")) + [Path(__file__).resolve()]
+        for f in files:
+            h.update(str(f.relative_to(REPO)).encode())
+            h.update(f.read_bytes())
+        _SOURCE_HASH = h.hexdigest()
+    return _SOURCE_HASH
+
+
+def run_tag(cfg) -> str:
+    sampler = "dg" if cfg.depth_guided else "full"
+    lit = "-literal" if cfg.patches.mode == "literal" else ""
+    if cfg.mode == "gt":
+        return f"gt_P{cfg.patches.size}{lit}_k{cfg.top_k}"
+    return f"render_P{cfg.patches.size}{lit}_{sampler}_k{cfg.top_k}"
+
+
+def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
+                 progress: bool = True, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Localize the scene's queries with ``cfg`` (or reuse a matching record).
+
+    Returns pipeline.summarize's dict plus ``per_query`` (names, t_err_m, R_err_deg (inf for
+    failures), success, fallback, inliers, matches), ``localize_s_per_query`` (sum of the
+    median stage times), ``wall_s``, ``measured_at``, ``reused`` and ``record``.
+    """
+    from vrs_jax import pipeline
+    from vrs_jax.eval import metrics
+
+    key = {"version": RUNS_VERSION, "map": map_stamp(ctx.map_dir), "cfg": repr(cfg),
+           "queries": list(ctx.queries.names), "source": source_hash()}
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    path = Path(work) / "runs" / ctx.name / f"{run_tag(cfg)}_{digest}.json"
+    if not fresh and path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            doc = None
+        if doc is not None and doc.get("key") == key:
+            log(f"[{ctx.name}] {run_tag(cfg)}: reusing {path} ({doc['summary']['measured_at']})")
+            out = doc["summary"]
+            out["per_query"]["t_err_m"] = _inf(out["per_query"]["t_err_m"])
+            out["per_query"]["R_err_deg"] = _inf(out["per_query"]["R_err_deg"])
+            return {**out, "reused": True, "record": str(path)}
+    t0 = time.perf_counter()
+    results, info = pipeline.localize_queries(ctx.m, ctx.queries, cfg, progress=progress)
+    wall = time.perf_counter() - t0
+    s = pipeline.summarize(ctx.queries, results, info, ctx.m, cfg, ctx.map_dir)
+    q = ctx.queries
+    R = np.stack([np.asarray(r.R, np.float64) for r in results])
+    t = np.stack([np.asarray(r.t, np.float64) for r in results])
+    dt, dr = metrics.pose_errors(R, t, q.R, q.t, has_estimate=q.has_pose)
+    s["per_query"] = {
+        "names": list(q.names), "t_err_m": dt.tolist(), "R_err_deg": dr.tolist(),
+        "success": [bool(r.success) for r in results],
+        "fallback": [bool(r.fallback) for r in results],
+        "inliers": [int(r.n_inliers) for r in results],
+        "matches": [int(r.n_matches) for r in results]}
+    from vrs_jax.localize.localize import STAGES
+
+    s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGES))
+    s["wall_s"] = wall
+    s["measured_at"] = now()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, {"key": key, "summary": s})
+    return {**s, "reused": False, "record": str(path)}
+
+
+def _inf(xs: list) -> list[float]:
+    return [math.inf if x is None else float(x) for x in xs]
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def compile_and_time(fn, *args, repeats: int = 3, budget_s: float = 2.0
+                     ) -> tuple[float, float, Any]:
+    """Compile a jitted ``fn`` for ``args`` ahead of time, then time calls of it.
+
+    Calls it ``repeats`` times, or fewer once the calls made add up to ``budget_s`` (at least
+    once): long calls are measured once, short ones several times. Returns (median seconds
+    per call, compile seconds, last output). Compiling with ``lower().compile()`` spares the
+    warm-up call, which matters for calls of many seconds.
+    """
+    t0 = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    sec, out = time_calls(compiled, *args, repeats=repeats, budget_s=budget_s)
+    return sec, compile_s, out
+
+
+def time_calls(fn, *args, repeats: int = 3, budget_s: float = 2.0) -> tuple[float, Any]:
+    """Median seconds of up to ``repeats`` calls (fewer past ``budget_s``), last output."""
+    import jax
+
+    times: list[float] = []
+    out = None
+    while not times or (len(times) < repeats and sum(times) < budget_s):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), out
+
+
+# ----------------------------------------------------------------------------- records
+
+
+def now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _version(dist: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _git() -> dict[str, Any]:
+    def run(*cmd):
+        try:
+            r = subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True,
+                               timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return r.stdout.strip() if r.returncode == 0 else None
+
+    status = run("status", "--porcelain", "--untracked-files=no")
+    return {"commit": run("rev-parse", "HEAD"),
+            "dirty": None if status is None else bool(status)}
+
+
+def environment() -> dict[str, Any]:
+    """Machine, device, library versions and code version, for every benchmark JSON."""
+    import jax
+
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = int(line.split()[1]) * 1024
+                break
+    except OSError:
+        pass
+    try:
+        load = list(os.getloadavg())
+    except OSError:
+        load = None
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:
+        usable = os.cpu_count()
+    return {
+        "time_utc": now(),
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "cpu": cpu, "cpu_count": os.cpu_count(), "cpus_usable": usable,
+                    "memory_bytes": mem, "load_avg_at_start": load},
+        "device": {"backend": jax.default_backend(),
+                   "devices": [f"{d.platform}:{d.device_kind}" for d in jax.devices()]},
+        "versions": {name: _version(dist) for name, dist in (
+            ("jax", "jax"), ("jaxlib", "jaxlib"), ("flax", "flax"), ("optax", "optax"),
+            ("optimistix", "optimistix"), ("orbax-checkpoint", "orbax-checkpoint"),
+            ("numpy", "numpy"), ("opencv", "opencv-python-headless"),
+            ("pycolmap", "pycolmap"), ("matplotlib", "matplotlib"))},
+        "code": {**_git(), "vrs_jax_source_sha256": source_hash()},
+        "env": {k: os.environ[k] for k in ("XLA_FLAGS", "JAX_PLATFORMS", "OMP_NUM_THREADS")
+                if k in os.environ},
+    }
+
+
+def base_doc(benchmark: str, args: argparse.Namespace, argv: list[str] | None
+             ) -> dict[str, Any]:
+    """The common head of a benchmark JSON: name, command, environment, arguments."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = " ".join(["python", "-m", f"benchmarks.{benchmark}"] + [shlex.quote(a)
+                                                                       for a in argv])
+    return {"benchmark": benchmark, "command": command, **environment(),
+            "args": {k: v for k, v in vars(args).items()}}
+
+
+def write_json(path: str | Path, doc: dict) -> Path:
+    """Strict JSON (non-finite numbers as null), written atomically (tmp, then rename)."""
+    from vrs_jax.eval import metrics
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(metrics.json_ready(doc), indent=1, allow_nan=False,
+                              default=str) + "\n")
+    os.replace(tmp, p)
+    return p
+
+
+# ----------------------------------------------------------------------------- tables
+
+
+def fmt(x: Any, digits: int = 2) -> str:
+    """A number for a table: None/nan -> '-', inf -> 'inf', ints as ints."""
+    if x is None:
+        return "-"
+    if isinstance(x, (bool, np.bool_)):
+        return "yes" if x else "no"
+    if isinstance(x, (int, np.integer)):
+        return f"{int(x):,}"
+    x = float(x)
+    if math.isnan(x):
+        return "-"
+    if math.isinf(x):
+        return "inf"
+    return f"{x:,.{digits}f}"
+
+
+def pct(x: Any) -> str:
+    return "-" if x is None else f"{100.0 * float(x):.1f}%"
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None
+          ) -> str:
+    """A plain-text table: first column left-aligned, the others right-aligned."""
+    cells = [[str(c) for c in r] for r in rows]
+    widths = [max([len(h)] + [len(r[i]) for r in cells]) for i, h in enumerate(headers)]
+
+    def line(r):
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                         for i, (c, w) in enumerate(zip(r, widths, strict=True)))
+
+    out = [title] if title else []
+    out += [line(headers), "  ".join("-" * w for w in widths)]
+    out += [line(r) for r in cells]
+    return "\n".join(out)
+
+
+def json_path(args, name: str) -> Path:
+    return Path(args.json) if args.json else Path(DEFAULT_JSON_DIR) / f"{name}.json"

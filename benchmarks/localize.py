@@ -1,0 +1,124 @@
+"""Localization benchmark: per-stage latency and accuracy, VRS-NeRF (render) vs baseline (gt).
+
+    python -m benchmarks.localize [--scenes synthetic,fern,lego] [--json FILE] [--work DIR]
+
+For each scene, every query is localized in ``render`` mode (descriptors of NeRF-rendered
+patches: VRS-NeRF) and ``gt`` mode (descriptors of the real reference patches stored in the
+baseline map: the hierarchical baseline), with the map's patch size and the config's sampler
+(depth-guided by default; --full-sampling renders coarse + fine). Reported per scene and
+mode: median translation / rotation error, recall at the DESIGN.md thresholds, the median
+time per query of each stage (retrieval, rays, render, describe, matching, RANSAC,
+refinement; query preparation separately; a warm-up query compiles first), rays and NeRF
+evaluations per query, and map bytes.
+
+Defaults: all three scenes (the issue's table), config cpu-small, maps built once into
+--work (NeRF budgets: synthetic 5, fern 3, lego 3 minutes): ~4 minutes on 2 CPU cores when
+the maps exist, plus ~13 minutes the first time to build them. Each run is measured afresh
+and recorded in WORK/runs/ (the ablation and figures reuse those records).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from benchmarks import common
+from vrs_jax.errors import cli_main
+from vrs_jax.localize.localize import STAGES
+
+MODES = ("render", "gt")
+RECALL_KEYS = ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50cm_5deg",
+               "500cm_10deg")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.localize", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    common.add_scene_args(p, default_scenes=("synthetic", "fern", "lego"))
+    p.add_argument("--modes", default="render,gt", help="comma-separated: render, gt")
+    p.add_argument("--full-sampling", action="store_true",
+                   help="render mode: coarse + fine sampling instead of the depth-guided "
+                        "interval (~6x slower rendering on cpu-small)")
+    p.add_argument("--top-k", type=int, default=None,
+                   help="retrieved reference images (default: the config's)")
+    p.add_argument("--json", default=None,
+                   help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
+    return p
+
+
+def row_of(scene: str, mode: str, s: dict) -> dict:
+    """The JSON/table row of one run (a summary from common.localize_run)."""
+    timing = {k: s["timing_s"].get(k) for k in (*STAGES, "query_preparation")}
+    return {"scene": scene, "mode": mode, "n_queries": s["n_queries"],
+            "patch_size": s["patch_size"], "depth_guided": s["depth_guided"],
+            "median_t_cm": s["median_t_cm"], "median_R_deg": s["median_R_deg"],
+            "recall": s["recall"], "n_success": s["n_success"], "n_fallback": s["n_fallback"],
+            "median_inliers": s["median_inliers"], "timing_s": timing,
+            "localize_s_per_query": s["localize_s_per_query"],
+            "rays_per_query": s["rays_per_query"],
+            "nerf_evals_per_query": s["nerf_evals_per_query"], "map_bytes": s["map_bytes"],
+            "per_query": s["per_query"], "measured_at": s["measured_at"],
+            "reused": s["reused"], "record": s["record"]}
+
+
+def accuracy_table(rows: list[dict]) -> str:
+    return common.table(
+        ["scene / mode", "queries", "median (cm, deg)", "1cm/1deg", "2cm/2deg", "5cm/5deg",
+         "10cm/5deg", "25cm/2deg", "fallback", "map (MB)"],
+        [[f"{r['scene']} / {r['mode']}", r["n_queries"],
+          f"{common.fmt(r['median_t_cm'])}, {common.fmt(r['median_R_deg'])}",
+          *(common.pct(r["recall"][k] if r["recall"] else None)
+            for k in ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg")),
+          r["n_fallback"], common.fmt(r["map_bytes"]["total"] / 1e6, 3)] for r in rows],
+        title="Accuracy (render = VRS-NeRF, rendered patches; gt = baseline, real patches)")
+
+
+def latency_table(rows: list[dict]) -> str:
+    ms = lambda x: common.fmt(None if x is None else 1000.0 * x, 1)  # noqa: E731
+    return common.table(
+        ["scene / mode", *STAGES, "total", "query prep", "rays/query", "NeRF evals/query"],
+        [[f"{r['scene']} / {r['mode']}", *(ms(r["timing_s"][k]) for k in STAGES),
+          ms(r["localize_s_per_query"]), ms(r["timing_s"]["query_preparation"]),
+          common.fmt(r["rays_per_query"], 0), common.fmt(r["nerf_evals_per_query"], 0)]
+         for r in rows],
+        title="Median latency per query (ms)")
+
+
+@cli_main
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    if not modes or any(m not in MODES for m in modes):
+        from vrs_jax.errors import VrsError
+
+        raise VrsError(f"--modes must list some of {', '.join(MODES)}, got {args.modes!r}")
+    doc = common.base_doc("localize", args, argv)
+    ctxs, skipped = common.prepare_scenes(args)
+    rows, maps = [], {}
+    for ctx in ctxs:
+        maps[ctx.name] = common.map_info(ctx)
+        for mode in modes:
+            over = {}
+            if args.top_k is not None:
+                over["top_k"] = args.top_k
+            if mode == "render" and args.full_sampling:
+                over["depth_guided"] = False
+            cfg = common.localize_cfg(ctx, mode, **over)
+            s = common.localize_run(ctx, cfg, args.work, fresh=True, progress=not args.quiet)
+            row = row_of(ctx.name, mode, s)
+            row["localize_config"] = dataclasses.asdict(cfg)
+            rows.append(row)
+    print()
+    print(accuracy_table(rows))
+    print()
+    print(latency_table(rows))
+    for s in skipped:
+        print(f"skipped {s['scene']}: {s['reason']}")
+    doc.update({"maps": maps, "rows": rows, "skipped": skipped})
+    out = common.write_json(common.json_path(args, "localize"), doc)
+    print(f"\nwrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,231 @@
+"""Smoke tests of the benchmarks on the tiny synthetic map: JSON keys, finite, consistent data."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from benchmarks import ablation, common, figures, localize, map_size, render
+from vrs_jax import pipeline
+from vrs_jax.features.patches import PatchConfig, extract_patches, patch_grid
+
+ENV_KEYS = {"benchmark", "time_utc", "command", "machine", "device", "versions", "code", "args"}
+
+
+@pytest.fixture(scope="module")
+def base(tiny_map, tmp_path_factory):
+    """Arguments shared by the benchmark runs: the tiny map, a shared work folder."""
+    work = tmp_path_factory.mktemp("bench_work")
+    return ["--map", f"synthetic={tiny_map}", "--work", str(work), "--max-queries", "2",
+            "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def loaded(tiny_map):
+    return pipeline.load_map(tiny_map)
+
+
+@pytest.fixture(scope="module")
+def localize_doc(base, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_json") / "localize.json"
+    assert localize.main(base + ["--scenes", "synthetic", "--json", str(out)]) == 0
+    return json.loads(out.read_text())
+
+
+def _finite(*xs):
+    return all(x is not None and math.isfinite(float(x)) for x in xs)
+
+
+def test_localize_benchmark_json(localize_doc, loaded):
+    doc = localize_doc
+    assert ENV_KEYS <= set(doc) and doc["benchmark"] == "localize"
+    assert doc["versions"]["jax"] and doc["machine"]["cpu_count"] >= 1
+    assert [r["mode"] for r in doc["rows"]] == ["render", "gt"]
+    egm = loaded.egm
+    for r in doc["rows"]:
+        assert r["n_queries"] == 2 and len(r["per_query"]["t_err_m"]) == 2
+        assert set(r["recall"]) >= {"5cm_5deg", "2cm_2deg", "25cm_2deg"}
+        assert all(0.0 <= v <= 1.0 for v in r["recall"].values())
+        assert _finite(r["localize_s_per_query"]) and r["localize_s_per_query"] > 0
+        assert all(_finite(r["timing_s"][k]) for k in ("retrieval", "matching", "ransac"))
+        cfg = r["localize_config"]
+        if r["mode"] == "render":
+            # rays per query = k x mean valid keypoints per image x P^2
+            mean_valid = np.asarray(egm.kp_mask).sum(1).mean()
+            expect = cfg["top_k"] * mean_valid * cfg["patches"]["size"] ** 2
+            assert r["rays_per_query"] == pytest.approx(expect)
+            assert r["nerf_evals_per_query"] == pytest.approx(
+                expect * cfg["narrow_samples"])
+            assert r["timing_s"]["render"] > 0
+        else:
+            assert r["rays_per_query"] == 0 and r["timing_s"]["render"] == 0
+            assert r["map_bytes"]["total"] == r["map_bytes"]["egm"] > 0
+    # the baseline localizes the easy synthetic queries (real patches)
+    assert _finite(doc["rows"][1]["median_t_cm"]) and doc["rows"][1]["median_t_cm"] < 5
+    assert doc["maps"]["synthetic"]["n_queries_used"] == 2
+
+
+def test_ablation_reuses_the_localize_runs(base, localize_doc, tmp_path):
+    # (other patch sizes run the same code path as the localize benchmark's fresh runs; the
+    # render benchmark test covers a P other than the map's)
+    out = tmp_path / "ablation.json"
+    assert ablation.main(base + ["--scenes", "synthetic", "--sizes", "9",
+                                 "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    rows = {r["method"]: r for r in doc["rows"]}
+    assert list(rows) == ["render 9x9", "GT (real 9x9)"]
+    # the map's P (9 in the test config) and GT rows are the localize benchmark's runs
+    assert rows["render 9x9"]["reused"] and rows["GT (real 9x9)"]["reused"]
+    loc = {r["mode"]: r for r in localize_doc["rows"]}
+    for method, mode in (("render 9x9", "render"), ("GT (real 9x9)", "gt")):
+        assert rows[method]["record"] == loc[mode]["record"]
+        assert rows[method]["recall"] == loc[mode]["recall"]
+        assert rows[method]["rays_per_query"] == loc[mode]["rays_per_query"]
+    assert rows["render 9x9"]["render_s_per_query"] > 0
+    assert rows["GT (real 9x9)"]["render_s_per_query"] == 0
+
+
+def test_map_size_parts_add_up(base, tmp_path):
+    out = tmp_path / "map_size.json"
+    assert map_size.main(base + ["--scenes", "synthetic", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    s = doc["sizes"]["synthetic"]
+    for kind in ("vrs", "baseline"):
+        parts = sum(v for k, v in s[kind].items() if k != "total")
+        assert parts == s[kind]["total"] > 0
+    assert s["vrs"]["local descriptors"] == 0 and s["vrs"]["NeRF weights"] > 0
+    assert s["baseline"]["local descriptors"] > 0 and s["baseline"]["NeRF weights"] == 0
+    assert s["ratio_baseline_over_vrs"] == pytest.approx(
+        s["baseline"]["total"] / s["vrs"]["total"])
+    cfgs = {r["config"]: r for r in doc["nerf_configs"]}
+    assert cfgs["paper"]["bytes_per_cluster"] == 4 * cfgs["paper"]["params"]
+    assert cfgs["paper"]["params"] > cfgs["cpu-small"]["params"] > cfgs["test"]["params"]
+
+
+def test_render_benchmark_counts(base, loaded, tmp_path):
+    out = tmp_path / "render.json"
+    assert render.main(base + ["--sizes", "11", "--samplers", "dg", "--sweep-keypoints", "8",
+                               "--repeats", "1", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    s = doc["scenes"]["synthetic"]
+    c = s["query_vs_full"]
+    egm = loaded.egm
+    idx = np.asarray(c["retrieved"])
+    valid = np.asarray(egm.kp_mask)[idx].sum(1)
+    P = c["patch_size"]
+    assert c["valid_keypoints"] == valid.tolist()
+    assert c["patch_rays"] == int(valid.sum()) * P * P
+    assert c["full_image_pixels"] == int(np.prod(np.asarray(egm.sizes)[idx], axis=1).sum())
+    assert c["fewer_rays_factor"] == pytest.approx(c["full_image_pixels"] / c["patch_rays"])
+    assert 0 < c["literal_distinct_pixels"] <= c["patch_rays"]
+    rows = {r["method"]: r for r in c["rows"]}
+    dg, cf = rows["patches, depth-guided"], rows["patches, coarse+fine"]
+    full = rows["full images, coarse+fine"]
+    cfg = loaded.ilm.config
+    assert cf["nerf_evals_per_ray"] == full["nerf_evals_per_ray"] == (
+        cfg.num_samples_coarse + cfg.num_samples_fine)
+    assert dg["nerf_evals"] == dg["rays"] * dg["nerf_evals_per_ray"]
+    assert all(_finite(r["seconds"]) and r["seconds"] > 0 for r in c["rows"])
+    assert len(s["sweep"]) == 1  # P = 11 (the map's is 9), depth-guided
+    for r in s["sweep"]:
+        assert r["patches_timed"] == min(8, int(valid[0]))
+        assert r["patch_size"] == 11 and r["depth_guided"]
+        assert r["rays_per_query"] == pytest.approx(
+            s["localize_config"]["top_k"] * np.asarray(egm.kp_mask).sum(1).mean() * 121)
+        assert _finite(r["ms_per_patch"], r["rays_per_s"]) and r["ms_per_patch"] > 0
+        assert r["nerf_evals_per_s"] == pytest.approx(r["rays_per_s"] * r["nerf_evals_per_ray"])
+
+
+def test_figures_written(base, localize_doc, tmp_path):
+    out = tmp_path / "fig"
+    assert figures.main(base + ["--out", str(out), "--cluster-scenes", "synthetic",
+                                "--views", "1", "--match-modes", "render,gt"]) == 0
+    doc = json.loads((out / "figures.json").read_text())
+    names = sorted(p.split("/")[-1] for p in doc["figures"])
+    assert names == ["clusters_synthetic.png", "cumulative_errors.png",
+                     "matches_synthetic.png", "matches_synthetic_gt.png",
+                     "render_vs_real_synthetic.png"]
+    for p in doc["figures"]:
+        img = cv2.imread(p)
+        assert img is not None and img.shape[0] > 200 and img.shape[1] > 400
+        assert img.std() > 10  # not blank
+    info = doc["info"]
+    assert info["matches_synthetic_gt"]["inliers"] >= 12  # the baseline matches this query
+    assert sum(info["clusters_synthetic"]["kmeans_counts"]) == 24
+    assert sum(info["clusters_synthetic"]["grid_counts"]) == 24
+    assert _finite(info["render_synthetic"]["views"][0]["psnr"])
+
+
+def test_paste_patches_puts_literal_patches_back_exactly():
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 50)).astype(np.float32)
+    kp = np.array([[10.3, 12.7, 2.0, 0.3], [30.9, 20.1, 1.5, -1.0]], np.float32)
+    cfg = PatchConfig(size=9, mode="literal")
+    patches = np.asarray(extract_patches(img, kp, cfg))
+    pos, _ = patch_grid(kp, cfg)
+    out = figures.paste_patches(np.zeros((40, 50, 3), np.float32), patches, pos,
+                                np.arange(2))
+    for k in range(2):
+        x0, y0 = (np.floor(pos[k, 0, 0]).astype(int))
+        np.testing.assert_allclose(out[y0:y0 + 9, x0:x0 + 9, 0], img[y0:y0 + 9, x0:x0 + 9],
+                                   atol=1e-5)
+    assert out[0, 0, 0] == 0.0  # outside every patch: untouched
+
+
+def test_paste_patches_follows_rotated_canonical_grid():
+    # a smooth image: canonical patches read back and pasted land on the same values
+    yy, xx = np.mgrid[0:60, 0:80].astype(np.float32)
+    img = 0.5 + 0.4 * np.sin(xx / 9.0) * np.cos(yy / 7.0)
+    kp = np.array([[40.0, 30.0, 1.5, 0.7]], np.float32)
+    cfg = PatchConfig(size=15)
+    patches = np.asarray(extract_patches(img, kp, cfg))
+    pos, _ = patch_grid(kp, cfg)
+    out = figures.paste_patches(np.full((60, 80, 3), -1.0, np.float32), patches, pos,
+                                np.arange(1))
+    cover = out[..., 0] >= 0
+    assert cover.sum() > 100
+    assert np.abs(out[..., 0][cover] - img[cover]).mean() < 0.03
+
+
+def test_grid_and_top_view():
+    assert figures.grid_shape(4, 1.0) == (2, 2)
+    assert figures.grid_shape(6, 2.0) == (3, 2)
+    assert figures.grid_shape(5, 1.0) in ((5, 1), (1, 5))
+    rng = np.random.default_rng(1)
+    xy = rng.random((50, 2)) * [4.0, 2.0]
+    labels, (nx, ny), edges = figures.grid_clusters(xy, 8)
+    assert (nx, ny) == (4, 2) and labels.min() >= 0 and labels.max() < 8
+    assert np.bincount(labels, minlength=8).sum() == 50
+    # top view of cameras on a horizontal ellipse drops the vertical axis
+    a = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+    centers = np.stack([2 * np.cos(a), np.sin(a), 1.5 + 0.01 * np.sin(3 * a)], -1)
+    tv = figures.top_view(centers)
+    assert np.ptp(tv[:, 0]) == pytest.approx(4.0, rel=0.02)
+    assert np.ptp(tv[:, 1]) == pytest.approx(2.0, rel=0.02)
+
+
+def test_bad_arguments_and_missing_data(tmp_path, capsys):
+    assert localize.main(["--scenes", "nosuch", "--work", str(tmp_path)]) == 2
+    assert "unknown scene" in capsys.readouterr().err
+    assert map_size.main(["--map", "nowhere", "--work", str(tmp_path)]) == 2
+    assert ablation.main(["--sizes", "10", "--work", str(tmp_path)]) == 2
+    out = tmp_path / "ms.json"
+    assert map_size.main(["--scenes", "fern", "--data-root", str(tmp_path / "none"),
+                          "--work", str(tmp_path), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["sizes"] == {} and doc["skipped"][0]["scene"] == "fern"
+
+
+def test_table_and_number_formatting():
+    t = common.table(["a", "b"], [["x", "1"], ["long name", "22"]], title="T")
+    lines = t.splitlines()
+    assert lines[0] == "T" and len({len(x) for x in lines[1:]}) == 1
+    assert common.fmt(None) == "-" and common.fmt(math.inf) == "inf"
+    assert common.fmt(1234) == "1,234" and common.fmt(1.23456, 3) == "1.235"
+    assert common.pct(0.5) == "50.0%"
+    assert common.evenly_spaced(20, 3).tolist() == [0, 10, 19]
+    assert common.evenly_spaced(5, None).tolist() == list(range(5))
