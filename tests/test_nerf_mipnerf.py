@@ -167,7 +167,10 @@ def test_stratified_samples_sorted_inside_bounds(randomized, lindisp):
     assert np.all(t <= np.asarray(far)[:, None] * (1 + 1e-6))
 
 
-@given(st.lists(st.floats(0.0, 10.0, allow_nan=False), min_size=4, max_size=40),
+_resample = jax.jit(mipnerf.resample_along_rays, static_argnums=(6, 7))
+
+
+@given(st.lists(st.floats(0.0, 10.0, allow_nan=False), min_size=32, max_size=32),
        st.integers(0, 2**31 - 1), st.booleans())
 @settings(max_examples=60, deadline=None)
 def test_resampling_sorted_inside_near_far(weights, seed, randomized):
@@ -178,7 +181,7 @@ def test_resampling_sorted_inside_near_far(weights, seed, randomized):
     w = np.asarray(weights, np.float32)[None]
     if seed % 5 == 0:
         w = np.zeros_like(w)  # no content at all: falls back to uniform
-    new_t, (means, covs) = mipnerf.resample_along_rays(
+    new_t, (means, covs) = _resample(
         jax.random.key(seed), jnp.zeros((1, 3)), jnp.asarray([[0.0, 0.0, 1.0]]),
         jnp.asarray([0.01]), jnp.asarray(t_vals, jnp.float32), jnp.asarray(w), 24, randomized)
     new_t = np.asarray(new_t)

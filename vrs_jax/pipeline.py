@@ -155,8 +155,11 @@ def build_map(scene: Scene, out_dir: str | Path, pcfg: PipelineConfig, progress:
             ncfg = nerf_config.get_config(pcfg.nerf, n_clusters=n_clusters)
         log(f"[2/3] ILM: {ncfg.n_clusters} Mip-NeRF cluster(s), config {ncfg.name}, "
             f"{steps} steps" + (f" or {minutes:g} min" if minutes else ""))
-        refs_scene = scene.subset(~scene.is_query | ~scene.has_pose)
-        prep = nerf_train.prepare(refs_scene, ncfg, points3d=np.asarray(egm.points3d))
+        # references only: the queries stay unseen (held-out PSNR is not computed here)
+        refs_scene = scene.references()
+        prep = nerf_train.prepare(refs_scene, ncfg, points3d=np.asarray(egm.points3d),
+                                  patch_keypoints=(egm.keypoints, egm.kp_mask,
+                                                   egm_cfg.features.patches))
         res = nerf_train.train(prep, out / "nerf", steps=steps, minutes=minutes,
                                progress=progress)
         ilm = res.ilm

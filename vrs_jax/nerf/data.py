@@ -16,7 +16,7 @@ compiled step serves every cluster.
 from __future__ import annotations
 
 import math
-from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -201,7 +201,16 @@ class RayBank:
     near: Array
     far: Array
     radii: Array
+    # Optional keypoint-patch pool (nerf/patch_pool.py), sorted by image: rays [M, ...] and
+    # per image its slice [pool_start[i], pool_start[i] + pool_count[i]).
+    pool_origins: Array | None = None
+    pool_directions: Array | None = None
+    pool_radii: Array | None = None
+    pool_rgb: Array | None = None
+    pool_start: Array | None = None
+    pool_count: Array | None = None
     use_dist: bool = struct.field(pytree_node=False, default=False)
+    pool_fraction: float = struct.field(pytree_node=False, default=0.0)
 
 
 def load_images(scene: Scene, background: np.ndarray | None = None) -> list[np.ndarray]:
@@ -212,8 +221,13 @@ def load_images(scene: Scene, background: np.ndarray | None = None) -> list[np.n
 
 
 def build_bank(scene: Scene, near: np.ndarray, far: np.ndarray,
-               images: list[np.ndarray]) -> RayBank:
-    """Ray bank of a scene's images (float [H, W, 3] in [0, 1], as from load_images)."""
+               images: list[np.ndarray], pool: dict[str, np.ndarray] | None = None,
+               pool_fraction: float = 0.0) -> RayBank:
+    """Ray bank of a scene's images (float [H, W, 3] in [0, 1], as from load_images).
+
+    ``pool``: optional keypoint-patch rays (patch_pool.patch_pool, image indices into
+    ``scene``); ``pool_fraction`` of each batch is then drawn from it.
+    """
     n = len(scene)
     wmax, hmax = int(np.max(scene.sizes[:, 0])), int(np.max(scene.sizes[:, 1]))
     stack = np.zeros((n, hmax, wmax, 3), np.uint8)
@@ -221,10 +235,20 @@ def build_bank(scene: Scene, near: np.ndarray, far: np.ndarray,
         stack[i, : img.shape[0], : img.shape[1]] = np.round(np.clip(img, 0, 1) * 255)
     dist = np.zeros((n, 5)) if scene.dist is None else np.asarray(scene.dist)
     f32 = lambda a: jnp.asarray(np.asarray(a, np.float32))  # noqa: E731
+    extra: dict[str, Any] = {}
+    if pool and pool_fraction > 0:
+        order = np.argsort(pool["image"], kind="stable")
+        count = np.bincount(pool["image"], minlength=n).astype(np.int32)
+        start = (np.cumsum(count) - count).astype(np.int32)
+        extra = dict(pool_origins=f32(pool["origins"][order]),
+                     pool_directions=f32(pool["directions"][order]),
+                     pool_radii=f32(pool["radii"][order]), pool_rgb=f32(pool["rgb"][order]),
+                     pool_start=jnp.asarray(start), pool_count=jnp.asarray(count),
+                     pool_fraction=float(pool_fraction))
     return RayBank(images=jnp.asarray(stack), K=f32(scene.K), R=f32(scene.R), t=f32(scene.t),
                    dist=f32(dist), sizes=jnp.asarray(np.asarray(scene.sizes, np.int32)),
                    near=f32(near), far=f32(far), radii=f32(pixel_radii(scene.K)),
-                   use_dist=bool(np.any(dist)))
+                   use_dist=bool(np.any(dist)), **extra)
 
 
 def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_size: int
@@ -236,7 +260,8 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
       count: [] number of valid entries.
       batch_size: B (static).
     Returns:
-      dict(origins [B,3], directions [B,3], radii [B], near [B], far [B], rgb [B,3]).
+      dict(origins [B,3], directions [B,3], radii [B], near [B], far [B], rgb [B,3],
+      image [B] int32, pixel [B, 2] int32 (row i, column j)).
     """
     k1, k2, k3 = jax.random.split(key, 3)
     slot = jax.random.randint(k1, (batch_size,), 0, jnp.maximum(count, 1))
@@ -250,8 +275,26 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
     uv = jnp.stack([j + 0.5, i + 0.5], axis=-1)[:, None, :]  # [B, 1, 2]
     o, d = geometry.pixel_rays(bank.K[img], bank.R[img], bank.t[img], uv,
                                bank.dist[img] if bank.use_dist else None)
-    return {"origins": o[:, 0], "directions": d[:, 0], "radii": bank.radii[img],
-            "near": bank.near[img], "far": bank.far[img], "rgb": rgb}
+    out = {"origins": o[:, 0], "directions": d[:, 0], "radii": bank.radii[img],
+           "near": bank.near[img], "far": bank.far[img], "rgb": rgb, "image": img,
+           "pixel": jnp.stack([i, j], axis=-1)}
+    n_pool = int(round(bank.pool_fraction * batch_size)) if bank.pool_count is not None else 0
+    if n_pool > 0:
+        # the first n_pool rays come from the keypoint-patch pool of the same images (an image
+        # without pool rays keeps its pixel ray)
+        k4 = jax.random.fold_in(key, 1)
+        im = img[:n_pool]
+        cnt = bank.pool_count[im]
+        pick = bank.pool_start[im] + jnp.minimum(
+            jnp.floor(jax.random.uniform(k4, (n_pool,)) * cnt).astype(jnp.int32),
+            jnp.maximum(cnt - 1, 0))
+        has = (cnt > 0)[:, None]
+        for name, src in (("origins", bank.pool_origins), ("directions", bank.pool_directions),
+                          ("rgb", bank.pool_rgb)):
+            out[name] = out[name].at[:n_pool].set(jnp.where(has, src[pick], out[name][:n_pool]))
+        out["radii"] = out["radii"].at[:n_pool].set(
+            jnp.where(has[:, 0], bank.pool_radii[pick], out["radii"][:n_pool]))
+    return out
 
 
 def pad_members(membership: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,7 +347,3 @@ def check_scene_for_training(scene: Scene) -> None:
     if refs.sum() < 2:
         raise VrsError("scene has a single posed reference image: a NeRF needs at least two "
                        "views", where)
-
-
-def image_path_hint(scene: Scene) -> Path | None:
-    return Path(scene.root) if getattr(scene, "root", None) is not None else None

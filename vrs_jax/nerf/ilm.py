@@ -20,7 +20,7 @@ from flax import struct, traverse_util
 
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf.config import NerfConfig
-from vrs_jax.nerf.model import Field, select_field
+from vrs_jax.nerf.model import Field, init_params, select_field
 
 FORMAT_VERSION = 1
 _META = "__meta__"
@@ -137,8 +137,6 @@ def load_ilm(path: str | Path) -> ILM:
 
 
 def _check_shapes(ilm: ILM, p: Path) -> None:
-    from vrs_jax.nerf.model import init_params
-
     c = ilm.n_clusters
     expect = jax.eval_shape(lambda: init_params(jax.random.key(0), ilm.config))
     got = jax.tree.map(lambda x: tuple(x.shape[1:]), ilm.fields.params)

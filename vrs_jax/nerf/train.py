@@ -17,6 +17,7 @@ after every step and stops before anything non-finite is saved.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -37,10 +38,17 @@ from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf import clusters as clusters_lib
 from vrs_jax.nerf import data as data_lib
+from vrs_jax.nerf import patch_pool
 from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.ilm import ILM
-from vrs_jax.nerf.model import (Field, init_stacked_params, mse_to_psnr, nerf_loss,
-                                render_levels, render_rays)
+from vrs_jax.nerf.model import (
+    Field,
+    init_stacked_params,
+    mse_to_psnr,
+    nerf_loss,
+    render_levels,
+    render_rays,
+)
 
 Array = jax.Array
 CLUSTER_AXIS = "clusters"
@@ -112,6 +120,7 @@ def init_state(cfg: NerfConfig, n_clusters: int, seed: int | None = None) -> Tra
 # ----------------------------------------------------------------------------- step
 
 
+@functools.lru_cache(maxsize=8)
 def make_train_step(cfg: NerfConfig, donate: bool = True
                     ) -> Callable[[TrainState, ClusterData, data_lib.RayBank],
                                   tuple[TrainState, dict[str, Array]]]:
@@ -221,8 +230,15 @@ class Prepared:
 
 
 def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float | None = None,
-            points3d: np.ndarray | None = None) -> Prepared:
-    """Split, near/far, clusters, normalisation, images -> device ray bank, eval rays."""
+            points3d: np.ndarray | None = None, patch_keypoints: tuple | None = None
+            ) -> Prepared:
+    """Split, near/far, clusters, normalisation, images -> device ray bank, eval rays.
+
+    ``patch_keypoints``: optional ``(keypoints [N, K_max, 4], mask [N, K_max], PatchConfig)``
+    of the map, N = the scene's posed reference images in order; with
+    ``cfg.patch_ray_fraction > 0`` their patch samples join the training rays
+    (nerf/patch_pool.py).
+    """
     data_lib.check_scene_for_training(scene)
     posed = np.asarray(scene.has_pose)
     refs = scene.subset(~np.asarray(scene.is_query) & posed)
@@ -254,7 +270,15 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
                      scale=jnp.asarray(np.asarray(scales), jnp.float32),
                      background=jnp.asarray(np.tile(background, (cfg.n_clusters, 1))))
     ref_images = data_lib.load_images(refs, background)
-    bank = data_lib.build_bank(refs, r_near, r_far, ref_images)
+    pool = None
+    if patch_keypoints is not None and cfg.patch_ray_fraction > 0:
+        kps, kmask, pcfg = patch_keypoints
+        if len(kps) != len(refs):
+            raise VrsError(f"patch keypoints given for {len(kps)} images, the scene has "
+                           f"{len(refs)} posed reference images", scene.root)
+        pool = patch_pool.patch_pool(refs, np.asarray(kps), np.asarray(kmask), pcfg, r_near,
+                                     r_far, cfg.patch_pool_max_rays, cfg.seed, background)
+    bank = data_lib.build_bank(refs, r_near, r_far, ref_images, pool, cfg.patch_ray_fraction)
     del ref_images
     held_images = data_lib.load_images(held, background) if len(held) else []
     held_cluster = (clusters_lib.assign_to_clusters(held.centers, clustering.centers)
@@ -280,6 +304,8 @@ def group_by_cluster(rays: dict[str, np.ndarray], cluster: np.ndarray, n_cluster
             arr[c, : len(i)] = v[i]
             if len(i) and len(i) < mmax:
                 arr[c, len(i):] = v[i[0]]  # valid padding rays (masked out of the metric)
+            elif not len(i) and k in ("directions", "near", "far"):
+                arr[c] = {"directions": (0.0, 0.0, 1.0), "near": 1.0, "far": 2.0}[k]
         out[k] = arr
     mask = np.zeros((n_clusters, mmax), np.float32)
     for c, i in enumerate(idx):
@@ -288,6 +314,7 @@ def group_by_cluster(rays: dict[str, np.ndarray], cluster: np.ndarray, n_cluster
     return out
 
 
+@functools.lru_cache(maxsize=8)
 def make_eval_fn(cfg: NerfConfig) -> Callable[[Any, ClusterData, dict[str, Array]], Array]:
     """Jitted held-out PSNR over grouped eval rays: (params [C], clusters, batch) -> PSNR []."""
 
@@ -306,7 +333,9 @@ def make_eval_fn(cfg: NerfConfig) -> Callable[[Any, ClusterData, dict[str, Array
         rays = jax.tree.map(lambda x: x.reshape((-1, size) + x.shape[1:]), rays)
         rgb = jax.lax.map(chunk, rays).reshape(-1, 3)[:n]
         se = jnp.mean((rgb - b["rgb"]) ** 2, axis=-1)
-        return jnp.sum(se * b["mask"]), jnp.sum(b["mask"])
+        # where, not a product: padding rays of a cluster without held-out views are zeros
+        # (zero directions) and render as NaN.
+        return jnp.sum(jnp.where(b["mask"] > 0, se, 0.0)), jnp.sum(b["mask"])
 
     def fn(params, cl: ClusterData, batch):
         se, cnt = jax.vmap(one)(params, cl.center, cl.scale, cl.background, batch)
@@ -403,15 +432,23 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     mngr = None
     if out_dir is not None:
         mngr = checkpoint_manager(Path(out_dir) / "checkpoints", cfg)
+        if not resume and mngr.latest_step() is not None:
+            mngr.close()
+            raise VrsError("folder already holds checkpoints: resume, or train into another "
+                           "folder", Path(out_dir) / "checkpoints")
         if resume and mngr.latest_step() is not None:
-            state, old = restore_checkpoint(mngr, state)
-            if json.dumps(old.get("config"), sort_keys=True) != json.dumps(
-                    meta["config"], sort_keys=True):
-                raise VrsError("checkpoint was trained with a different config; use another "
-                               "--out or --no-resume", Path(out_dir) / "checkpoints")
-            if old.get("scene") != meta["scene"]:
-                raise VrsError("checkpoint belongs to a different scene or clustering",
-                               Path(out_dir) / "checkpoints")
+            try:
+                state, old = restore_checkpoint(mngr, state)
+                if json.dumps(old.get("config"), sort_keys=True) != json.dumps(
+                        meta["config"], sort_keys=True):
+                    raise VrsError("checkpoint was trained with a different config; use "
+                                   "another output folder", Path(out_dir) / "checkpoints")
+                if old.get("scene") != meta["scene"]:
+                    raise VrsError("checkpoint belongs to a different scene or clustering",
+                                   Path(out_dir) / "checkpoints")
+            except VrsError:
+                mngr.close()
+                raise
             log(f"resumed from step {int(state.step)}")
     state = shard_state(state, mesh)
     cl = shard_clusters(prep.cluster_data, mesh)
@@ -428,50 +465,54 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     history: list[dict[str, float]] = []
     bar = tqdm(total=(target - start_step) if steps is not None else None, disable=not progress,
                desc=f"nerf[{cfg.name}]", dynamic_ncols=True, mininterval=1.0)
-    compile_s, t_loop, eval_s = 0.0, None, 0.0
+    compile_s, t_loop, aside_s = 0.0, None, 0.0  # aside: evaluation + checkpoint time
     steps_after_compile = start_step
     held = math.nan
-    while int(state.step) < target and time.perf_counter() < deadline:
-        state, metrics = step_fn(state, cl, bank)
-        m = jax.device_get(metrics)
-        s = int(state.step)
-        if t_loop is None:  # first step includes compilation
-            t_loop = time.perf_counter()
-            compile_s = t_loop - t_start
-            steps_after_compile = s
-        if not np.all(m["finite"]):
-            bad = int(np.flatnonzero(~m["finite"])[0])
-            where = (f"last good checkpoint: step {last_good} in "
-                     f"{Path(out_dir) / 'checkpoints'}" if last_good is not None
-                     else "no checkpoint was saved yet")
-            bar.close()
-            raise TrainingDiverged(
-                f"training diverged at step {s} (cluster {bad}: loss {float(m['loss'][bad])}); "
-                f"stopped; {where}; try a lower lr_init")
-        rec = {"step": s, "loss": float(np.mean(m["loss"])), "psnr": float(np.mean(m["psnr"])),
-               "time": time.perf_counter() - t_start}
-        if eval_fn is not None and (s % cfg.eval_every == 0):
-            t_eval = time.perf_counter()
-            held = float(eval_fn(state.params, cl, eval_batch))
-            eval_s += time.perf_counter() - t_eval
-            rec["heldout_psnr"] = held
-            log(f"step {s}: train psnr {rec['psnr']:.2f} held-out psnr {held:.2f}")
-        history.append(rec)
-        bar.update(1)
-        bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
-                        val=f"{held:.2f}", refresh=False)
-        if mngr is not None and s % cfg.checkpoint_every == 0:
+    try:
+        while int(state.step) < target and time.perf_counter() < deadline:
+            state, metrics = step_fn(state, cl, bank)
+            m = jax.device_get(metrics)
+            s = int(state.step)
+            if t_loop is None:  # the first step includes compilation
+                t_loop = time.perf_counter()
+                compile_s = t_loop - t_start
+                steps_after_compile = s
+            if not np.all(m["finite"]):
+                bad = int(np.flatnonzero(~m["finite"])[0])
+                where = (f"last good checkpoint: step {last_good} in "
+                         f"{Path(out_dir) / 'checkpoints'}" if last_good is not None
+                         else "no checkpoint was saved yet")
+                raise TrainingDiverged(
+                    f"training diverged at step {s} (cluster {bad}: loss "
+                    f"{float(m['loss'][bad])}, parameters finite: no); stopped; {where}; "
+                    f"try a lower lr_init")
+            rec = {"step": s, "loss": float(np.mean(m["loss"])),
+                   "psnr": float(np.mean(m["psnr"])), "time": time.perf_counter() - t_start}
+            t_aside = time.perf_counter()
+            if eval_fn is not None and (s % cfg.eval_every == 0):
+                held = float(eval_fn(state.params, cl, eval_batch))
+                rec["heldout_psnr"] = held
+                log(f"step {s}: train psnr {rec['psnr']:.2f} held-out psnr {held:.2f}")
+            history.append(rec)
+            bar.update(1)
+            bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
+                            val=f"{held:.2f}", refresh=False)
+            if mngr is not None and s % cfg.checkpoint_every == 0:
+                save_checkpoint(mngr, state, meta)
+                last_good = s
+            aside_s += time.perf_counter() - t_aside
+        t_end = time.perf_counter()
+        done = int(state.step)
+        if mngr is not None and done != last_good and done > start_step:
             save_checkpoint(mngr, state, meta)
-            last_good = s
-    bar.close()
-    t_end = time.perf_counter()
-    done = int(state.step)
-    if mngr is not None and done != last_good and done > start_step:
-        save_checkpoint(mngr, state, meta)
-    # Training throughput: steps after the first (compiling) one, evaluation time excluded
-    # (the first evaluation's compilation is counted in it too).
+    finally:
+        bar.close()
+        if mngr is not None:
+            mngr.close()
+    # Training throughput: steps after the first (compiling) one, with evaluation and
+    # checkpointing excluded.
     timed_steps = done - steps_after_compile
-    loop_s = (t_end - t_loop - eval_s) if t_loop is not None else 0.0
+    loop_s = (t_end - t_loop - aside_s) if t_loop is not None else 0.0
     sps = timed_steps / loop_s if loop_s > 0 else 0.0
     params = jax.device_get(state.params)
     return TrainResult(state, prep.ilm(jax.tree.map(jnp.asarray, params)), history, sps,

@@ -1,0 +1,133 @@
+"""The MLP and ray rendering: shapes, world-frame invariance, cluster selection, loss."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from vrs_jax.errors import VrsError
+from vrs_jax.nerf import model
+from vrs_jax.nerf.config import get_config, parse_overrides
+
+CFG = get_config("test")
+# One compiled renderer for the whole module (64 rays everywhere): compiling dominates.
+_render = jax.jit(model.render_rays, static_argnums=(7, 8))
+
+
+def _rays(n=64, seed=0):
+    rng = np.random.default_rng(seed)
+    o = rng.normal(0, 0.3, (n, 3)) + np.array([0.0, 0.0, -4.0])
+    d = np.concatenate([rng.normal(0, 0.2, (n, 2)), np.ones((n, 1))], 1)
+    f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    return f(o), f(d), f(np.full(n, 0.004)), f(np.full(n, 2.0)), f(np.full(n, 6.0))
+
+
+def _field(seed=0, center=(0.0, 0.0, 0.0), scale=0.8, bg=(1.0, 1.0, 1.0)):
+    params = model.init_params(jax.random.key(seed), CFG)
+    return model.Field(params, jnp.asarray(center, jnp.float32), jnp.float32(scale),
+                       jnp.asarray(bg, jnp.float32))
+
+
+def test_render_rays_shapes_and_ranges():
+    o, d, r, n, f = _rays()
+    out = _render(_field(), o, d, r, n, f, jax.random.key(1), CFG, True)
+    assert out["rgb"].shape == (64, 3) and out["depth"].shape == (64,)
+    assert out["acc"].shape == (64,)
+    assert np.all((np.asarray(out["acc"]) >= 0) & (np.asarray(out["acc"]) <= 1 + 1e-5))
+    assert np.all((np.asarray(out["depth"]) >= 2.0 - 1e-4) & (np.asarray(out["depth"]) <= 6.0))
+    levels = jax.jit(model.render_levels, static_argnums=(7, 8))(
+        _field(), o, d, r, n, f, jax.random.key(1), CFG, True)
+    assert len(levels) == 2
+    assert levels[0]["weights"].shape == (64, CFG.num_samples_coarse)
+    assert levels[1]["t_vals"].shape == (64, CFG.num_samples_fine + 1)
+
+
+def test_rendering_is_invariant_to_a_similarity_of_the_world_frame():
+    # World B = (world A - a) * k. Rays, radii and the normalisation move with it, so the
+    # rendering (and the t-depths) must be identical: radii scale with the world.
+    o, d, r, n, f = _rays()
+    a, k = np.array([1.0, -2.0, 0.5]), 3.0
+    field_a = _field(center=(0.1, 0.2, -0.3), scale=0.8)
+    field_b = model.Field(field_a.params, (field_a.center - a) * k, field_a.scale / k,
+                          field_a.background)
+    key = jax.random.key(0)
+    out_a = _render(field_a, o, d, r, n, f, key, CFG, False)
+    out_b = _render(field_b, (o - a) * k, d * k, r * k, n, f, key, CFG, False)
+    for key in ("rgb", "depth", "acc"):
+        np.testing.assert_allclose(out_a[key], out_b[key], rtol=2e-4, atol=2e-5)
+
+
+def test_radius_changes_the_rendering():
+    o, d, r, n, f = _rays()
+    key = jax.random.key(0)
+    a = _render(_field(), o, d, r, n, f, key, CFG, False)["rgb"]
+    b = _render(_field(), o, d, r * 50, n, f, key, CFG, False)["rgb"]
+    assert float(jnp.max(jnp.abs(a - b))) > 1e-4
+
+
+def test_select_field_picks_the_cluster():
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), _field(0), _field(1, scale=0.5))
+    o, d, r, n, f = _rays()
+    key = jax.random.key(0)
+    for c in (0, 1):
+        ref = _render(_field(c, scale=0.8 if c == 0 else 0.5), o, d, r, n, f, key, CFG, False)
+        got = _render(model.select_field(stacked, c), o, d, r, n, f, key, CFG, False)
+        np.testing.assert_allclose(got["rgb"], ref["rgb"], atol=1e-6)
+
+
+def test_stacked_init_gives_independent_clusters():
+    p = jax.jit(model.init_stacked_params, static_argnums=(1, 2))(jax.random.key(0), CFG, 3)
+    k = p["trunk_0"]["kernel"]
+    assert k.shape[0] == 3 and not np.allclose(k[0], k[1])
+    assert model.count_params(p) == 3 * model.count_params(model.init_params(jax.random.key(0),
+                                                                             CFG))
+
+
+def test_narrow_interval_renderer():
+    o, d, r, _, _ = _rays(32)
+    near, far = jnp.full(32, 3.8), jnp.full(32, 4.2)
+    out = jax.jit(model.render_rays_narrow, static_argnums=(7, 8))(
+        _field(), o, d, r, near, far, None, CFG, 8)
+    assert out["rgb"].shape == (32, 3)
+    assert np.all((np.asarray(out["depth"]) >= 3.8 - 1e-5) & (np.asarray(out["depth"]) <= 4.2))
+
+
+def test_loss_is_point_one_coarse_plus_fine():
+    coarse = {"rgb": jnp.zeros((4, 3))}
+    fine = {"rgb": jnp.full((4, 3), 0.5)}
+    target = jnp.ones((4, 3))
+    loss, mse = model.nerf_loss([coarse, fine], target, CFG)
+    np.testing.assert_allclose(float(mse), 0.25)
+    np.testing.assert_allclose(float(loss), 0.25 + 0.1 * 1.0)
+
+
+def test_flop_count_matches_xla_cost_analysis():
+    cfg = get_config("test", use_viewdirs=False)
+    params = model.init_params(jax.random.key(0), cfg)
+    dx, dv = model.feature_dims(cfg)
+    x, v = jnp.zeros((64, 8, dx)), jnp.zeros((64, dv))
+    fn = jax.jit(lambda p, x, v: model.make_mlp(cfg).apply({"params": p}, x, v))
+    cost = fn.lower(params, x, v).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    if not cost or "flops" not in cost:
+        pytest.skip("backend reports no cost analysis")
+    dots = model.mlp_flops_per_sample(cfg) * 64 * 8
+    assert dots <= cost["flops"] <= 1.2 * dots  # + bias adds and relus
+
+
+def test_config_overrides_and_errors():
+    cfg = get_config("cpu-small", **parse_overrides(["n_clusters=3", "lindisp=true",
+                                                     "near_far_percentiles=2,98"]))
+    assert cfg.n_clusters == 3 and cfg.lindisp and cfg.near_far_percentiles == (2.0, 98.0)
+    with pytest.raises(VrsError, match="unknown NeRF config"):
+        get_config("huge")
+    with pytest.raises(VrsError, match="unknown NeRF config field"):
+        parse_overrides(["widht=3"])
+    with pytest.raises(VrsError, match="bad value"):
+        parse_overrides(["net_width=wide"])
+    paper = get_config("paper")
+    assert (paper.net_depth, paper.net_width, paper.skip_layer) == (8, 256, 4)
+    assert (paper.num_samples_coarse, paper.num_samples_fine, paper.batch_size) == (128, 128,
+                                                                                      1024)
