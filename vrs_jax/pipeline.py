@@ -71,7 +71,7 @@ CONFIGS: dict[str, PipelineConfig] = {
                             nerf_steps=200_000),
     # Two CPU cores: the demo's setting (minutes per scene).
     "cpu-small": PipelineConfig("cpu-small", egm="cpu-small", nerf="cpu-small",
-                                localize="cpu-small", nerf_steps=3000, nerf_minutes=8.0),
+                                localize="cpu-small", nerf_steps=10_000, nerf_minutes=7.0),
     # Tests and `demo --quick`: seconds per stage.
     "test": PipelineConfig("test", egm="test", nerf="test", localize="test", nerf_steps=300,
                            nerf_minutes=2.0),
