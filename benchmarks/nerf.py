@@ -20,36 +20,13 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import environment
 from vrs_jax.errors import VrsError, cli_main
-
-
-def machine_info() -> dict:
-    import flax
-    import jax
-    import optax
-
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = None
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpu": cpu,
-            "cpu_count": os.cpu_count(), "load_avg_1min_at_start": load,
-            "devices": [str(d) for d in jax.devices()], "jax": jax.__version__,
-            "flax": flax.__version__, "optax": optax.__version__, "numpy": np.__version__}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -161,7 +138,8 @@ def run_config(name: str, args, scene) -> dict:
             res.state.params), "heldout_psnr": psnr, "heldout_ssim": ssim,
         "eval": eval_kind, "n_train": len(prep.refs), "n_heldout": len(prep.held_out),
         "heldout_pixel_psnr": psnr_px, "views": rows,
-        "history": res.history[:: max(1, len(res.history) // 200)]}
+        "history": [h for k, h in enumerate(res.history)
+                    if "heldout_psnr" in h or k % max(1, len(res.history) // 200) == 0]}
 
 
 def print_table(results: list[dict]) -> None:
@@ -181,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.minutes <= 0:
         raise VrsError("--minutes must be positive")
     configs = args.config or ["paper", "cpu-small"]
-    info = machine_info()
+    info = environment()
     scene = _load(args)
     results = []
     for name in configs:
