@@ -59,7 +59,7 @@ def test_benchmark_cli_table_and_json(dataset, tmp_path, capsys):
                        str(js), "--quiet"]) == 0
     res = json.loads(js.read_text())
     r = res["results"][0]
-    assert res["machine"]["jax"] and r["config"] == "test" and r["steps"] >= 1
+    assert res["machine"]["versions"]["jax"] and r["config"] == "test" and r["steps"] >= 1
     for key in ("train_steps_per_s", "render_rays_per_s", "mlp_evals_per_s", "heldout_psnr"):
         assert np.isfinite(r[key]) and r[key] > 0
     assert -1 <= r["heldout_ssim"] <= 1 and r["eval"] == "2/2 full views"
