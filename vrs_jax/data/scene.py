@@ -20,7 +20,9 @@ class Scene:
 
     Attributes:
       root: dataset root folder.
-      names: [N] image names relative to ``root`` (unique; used in results files).
+      names: [N] unique image names, used in results files: relative to the dataset root
+        (7Scenes, Cambridge, NeRF), to the images folder (Aachen, COLMAP: as hloc and the
+        benchmarks name them), or bare file names (LLFF).
       image_paths: [N] absolute paths of the colour images.
       K: [N, 3, 3] float64 intrinsics (COLMAP pixel convention: pixel centres at +0.5).
       dist: [N, 5] float64 OpenCV distortion ``(k1, k2, p1, p2, k3)``; zeros if none.
