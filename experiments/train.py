@@ -20,6 +20,7 @@ from pathlib import Path
 from experiments.common import add_scene_args, load_scene_from_args
 from vrs_jax import pipeline
 from vrs_jax.errors import cli_main
+from vrs_jax.nerf.config import parse_overrides
 
 
 def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
@@ -38,6 +39,9 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
                    help="wall-clock cap on this run's NeRF training (resume continues)")
     p.add_argument("--clusters", type=int, default=None,
                    help="number of NeRF clusters (default: the config's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "
+                        "trains on whole images only, as the paper)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -49,7 +53,8 @@ def run(args: argparse.Namespace, fmt: str | None = None) -> int:
           f"{int(scene.is_query.sum())} query images")
     out = pipeline.build_map(scene, args.out, pcfg, progress=not args.quiet,
                              nerf_steps=args.steps, nerf_minutes=args.minutes,
-                             n_clusters=args.clusters)
+                             n_clusters=args.clusters,
+                             nerf_overrides=parse_overrides(args.set))
     meta = json.loads((Path(out) / "map.json").read_text())
     mb = meta["stats"]["map_bytes"]
     print(f"[3/3] map written to {out}: VRS map {mb['total'] / 1e6:.2f} MB "

@@ -125,7 +125,7 @@ def _check_map_dir(out: Path, pcfg: PipelineConfig, scene: Scene) -> dict:
 
 def build_map(scene: Scene, out_dir: str | Path, pcfg: PipelineConfig, progress: bool = True,
               log=print, nerf_steps: int | None = None, nerf_minutes: float | None = None,
-              n_clusters: int | None = None) -> Path:
+              n_clusters: int | None = None, nerf_overrides: dict | None = None) -> Path:
     """EGM (VRS + baseline), then the ILM trained on the reference images; resumable."""
     out = Path(out_dir)
     meta = _check_map_dir(out, pcfg, scene)
@@ -150,9 +150,10 @@ def build_map(scene: Scene, out_dir: str | Path, pcfg: PipelineConfig, progress:
     steps = nerf_steps if nerf_steps is not None else pcfg.nerf_steps
     minutes = nerf_minutes if nerf_minutes is not None else pcfg.nerf_minutes
     if not ilm_path.is_file():
-        ncfg = nerf_config.get_config(pcfg.nerf)
+        over = dict(nerf_overrides or {})
         if n_clusters is not None:
-            ncfg = nerf_config.get_config(pcfg.nerf, n_clusters=n_clusters)
+            over["n_clusters"] = n_clusters
+        ncfg = nerf_config.get_config(pcfg.nerf, **over)
         log(f"[2/3] ILM: {ncfg.n_clusters} Mip-NeRF cluster(s), config {ncfg.name}, "
             f"{steps} steps" + (f" or {minutes:g} min" if minutes else ""))
         # references only: the queries stay unseen (held-out PSNR is not computed here)
