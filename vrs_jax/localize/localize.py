@@ -39,7 +39,7 @@ from vrs_jax.features.descriptor import describe, rgb_to_gray
 from vrs_jax.features.matching import match
 from vrs_jax.localize import rays as rays_mod
 from vrs_jax.localize.config import LocalizeConfig
-from vrs_jax.localize.pnp import PoseResult, estimate_pose, inlier_mask, ransac_pnp, refine_pose
+from vrs_jax.localize.pnp import estimate_pose, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
 from vrs_jax.nerf.ilm import ILM
 from vrs_jax.nerf.model import Field, render_rays, render_rays_narrow, select_field
@@ -136,7 +136,7 @@ def render_candidate(ilm: ILM, egm: EGM, i: Array, cfg: LocalizeConfig) -> Array
     if cfg.patches.mode == "literal":
         # overlapping axis-aligned patches share whole pixels: render each distinct one once
         pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
-        o, d = _pixel_rays(egm, i, pixels)
+        o, d = geometry.pixel_rays(egm.K[i], egm.R[i], egm.t[i], pixels, egm.dist[i])
         r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
         near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near.reshape(-1))
         far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far.reshape(-1))
@@ -148,10 +148,6 @@ def render_candidate(ilm: ILM, egm: EGM, i: Array, cfg: LocalizeConfig) -> Array
                            flat(near), flat(far), n_kp * P * P, ilm.config, cfg)
         rgb = rgb.reshape(shape + (3,))
     return rgb_to_gray(rgb)
-
-
-def _pixel_rays(egm: EGM, i: Array, pixels: Array) -> tuple[Array, Array]:
-    return geometry.pixel_rays(egm.K[i], egm.R[i], egm.t[i], pixels, egm.dist[i])
 
 
 def reference_descriptors(ilm: ILM | None, egm: EGM, idx: Array, cfg: LocalizeConfig
@@ -261,13 +257,7 @@ def _stage_ransac(uv, X, ok, K, cfg):
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
 def _stage_refine(R0, t0, uv, X, inl, ok_seed, ok, K, egm, idx, cfg):
-    R, t, info = refine_pose(R0, t0, uv, X, inl.astype(R0.dtype), K, cfg.pnp)
-    inliers = inlier_mask(R, t, uv, X, ok, K, cfg.pnp.threshold_px) & ok_seed
-    n_inl = jnp.sum(inliers).astype(jnp.int32)
-    success = ok_seed & (n_inl >= cfg.pnp.min_inliers) & jnp.all(jnp.isfinite(R))
-    pose = PoseResult(R=jnp.where(success, R, jnp.eye(3)), t=jnp.where(success, t, 0.0),
-                      inliers=inliers & success, n_inliers=jnp.where(success, n_inl, 0),
-                      success=success, cost=info.cost, cost_seed=info.cost_seed)
+    pose = refine_seed(R0, t0, inl, ok_seed, uv, X, ok, K, cfg.pnp)
     return finish(egm, idx, pose, jnp.sum(ok))
 
 

@@ -423,6 +423,14 @@ def estimate_pose(points2d: Array, points3d: Array, mask: Array, K: Array, cfg: 
     """
     mask = jnp.asarray(mask, dtype=bool)
     R0, t0, inl0, ok = ransac_pnp(points2d, points3d, mask, K, cfg)
+    return refine_seed(R0, t0, inl0, ok, points2d, points3d, mask, K, cfg)
+
+
+def refine_seed(R0: Array, t0: Array, inl0: Array, ok: Array, points2d: Array, points3d: Array,
+                mask: Array, K: Array, cfg: PnPConfig) -> PoseResult:
+    """The second half of :func:`estimate_pose`: refine a RANSAC seed on its inliers [M],
+    recount inliers at the refined pose and flag success (also used to time the stages
+    separately)."""
     R, t, info = refine_pose(R0, t0, points2d, points3d, inl0.astype(R0.dtype), K, cfg)
     inliers = inlier_mask(R, t, points2d, points3d, mask, K, cfg.threshold_px) & ok
     n_inl = jnp.sum(inliers).astype(jnp.int32)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 
 from vrs_jax import geometry
@@ -121,5 +120,3 @@ def unique_literal_pixels(positions: Array, mask: Array) -> tuple[Array, Array, 
     pixels = xy.astype(jnp.float32) + 0.5
     return pixels, inverse.reshape(kshape), count
 
-
-jax_patch_rays = jax.jit(patch_rays, static_argnames=("patch_cfg",))
