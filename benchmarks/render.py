@@ -39,7 +39,7 @@ from benchmarks import common
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.features.patches import PATCH_SIZES, patch_grid
-from vrs_jax.localize import rays as rays_mod
+from vrs_jax.features import rays as rays_mod
 from vrs_jax.localize.localize import (
     nerf_evals_per_ray,
     rays_per_query,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from vrs_jax.errors import VrsError
 
@@ -30,12 +31,15 @@ def parse_opts(items: list[str]) -> dict:
     return opts
 
 
-def add_scene_args(p: argparse.ArgumentParser, fmt: str | None = None) -> None:
+def add_scene_args(p: argparse.ArgumentParser, fmt: str | None = None,
+                   required: bool = True) -> None:
     """--format (unless fixed), --root, --query-every, --downscale, --opt."""
     if fmt is None:
-        p.add_argument("--format", required=True, dest="fmt",
-                       help="dataset format: 7scenes, cambridge, aachen, nerf, llff, colmap")
-    p.add_argument("--root", required=True, help="dataset root folder (its official layout)")
+        p.add_argument("--format", required=required, dest="fmt",
+                       help="dataset format: 7scenes, cambridge, aachen, nerf, llff, colmap, "
+                            "or images (a folder of unposed photos: SfM first)")
+    p.add_argument("--root", required=required,
+                   help="dataset root folder (its official layout)")
     p.add_argument("--query-every", type=int, default=None, metavar="N",
                    help="hold out every N-th image as a query (formats without a split)")
     p.add_argument("--downscale", type=int, default=None, metavar="N",
@@ -54,8 +58,31 @@ def scene_opts(args: argparse.Namespace) -> dict:
     return opts
 
 
-def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None):
-    """The Scene named by the parsed arguments (VrsError for bad input)."""
+def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None,
+                         sfm_dir: Path | None = None):
+    """The Scene named by the parsed arguments (VrsError for bad input).
+
+    ``--format images`` (a folder of unposed photos) runs pycolmap's incremental SfM first,
+    with its work files in ``sfm_dir``; every N-th photo is then held out with --query-every.
+    """
     from vrs_jax.data.readers import load_scene
 
-    return load_scene(fmt or args.fmt, args.root, **scene_opts(args))
+    fmt = fmt or args.fmt
+    if fmt == "images":
+        from vrs_jax.egm import sfm
+
+        if sfm_dir is None:
+            raise VrsError("--format images needs an output folder for its SfM work files")
+        if args.downscale:
+            raise VrsError("--downscale does not apply to --format images")
+        scene = sfm.scene_from_images(args.root, sfm_dir,
+                                      verbose=getattr(args, "verbose", False))
+        if args.query_every:
+            import dataclasses
+
+            from vrs_jax.data.readers._common import query_mask
+
+            scene = dataclasses.replace(scene, is_query=query_mask(scene.names,
+                                                                   args.query_every))
+        return scene
+    return load_scene(fmt, args.root, **scene_opts(args))

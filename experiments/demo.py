@@ -5,7 +5,7 @@
 1. generates the synthetic textured room in the 7Scenes layout (exact poses and depth),
 2. builds the map: EGM (SIFT, triangulation with the known poses, VLAD) and the NeRFs,
 3. localizes the query trajectory in ``render`` mode (VRS-NeRF: descriptors of NeRF-rendered
-   patches) and ``gt`` mode (the hierarchical baseline: descriptors of real patches, stored),
+   patches) and ``real`` mode (the hierarchical baseline: stored descriptors of real patches),
 4. prints one table in the paper's layout and writes OUT/demo.json.
 
 Everything goes under --out (default ./outputs/demo); re-running skips finished stages.
@@ -21,14 +21,16 @@ import json
 import time
 from pathlib import Path
 
-from vrs_jax import pipeline
+from vrs_jax import fileio, localize, maps
 from vrs_jax.data import synthetic
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import cli_main
 from vrs_jax.eval import metrics
+from vrs_jax.eval.report import summarize
+from vrs_jax.localize.batch import localize_scene
 
 PAPER_ROWS = (("render", "VRS-NeRF (rendered {P}x{P} patches)"),
-              ("gt", "Baseline (real {P}x{P} patches, GT)"))
+              ("real", "Baseline (real {P}x{P} patches, GT)"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,35 +66,35 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         scfg = dataclasses.replace(synthetic.get_config("default"), seed=args.seed, width=160,
                                    height=120, n_reference=36, n_query=8)
-        pcfg = pipeline.get_config("test")
+        name = "test"
     else:
         scfg = dataclasses.replace(synthetic.get_config("default"), seed=args.seed)
-        pcfg = pipeline.get_config("cpu-small")
+        name = "cpu-small"
     print(f"[demo] scene: {scfg.n_reference} reference + {scfg.n_query} query frames at "
           f"{scfg.width}x{scfg.height} -> {out / 'scene'}")
     synthetic.generate(out / "scene", scfg, progress=not args.quiet)
     scene = load_scene("7scenes", out / "scene")
-    pipeline.build_map(scene, out / "map", pcfg, progress=not args.quiet)
-    m = pipeline.load_map(out / "map")
+    maps.build_map(scene, out / "map", maps.get_config(name), progress=not args.quiet)
+    m = maps.load_map(out / "map")
     queries = scene.queries()
     rows = []
     for mode, label in PAPER_ROWS:
-        cfg = pipeline.localize_config(m.pcfg, m.egm_cfg, mode)
+        cfg = localize.get_config(name, source=mode)
         t0 = time.perf_counter()
-        results, info = pipeline.localize_queries(m, queries, cfg, progress=not args.quiet)
+        results, info = localize_scene(m, queries, cfg, progress=not args.quiet)
         elapsed = time.perf_counter() - t0
-        s = pipeline.summarize(queries, results, info, m, cfg, out / "map")
-        s.update(label=label.format(P=cfg.patches.size), seconds_per_query=float(sum(
+        s = summarize(queries, results, info, m, cfg, out / "map")
+        s.update(label=label.format(P=m.config.features.patches.size), seconds_per_query=float(sum(
             v for v in s["timing_s"].values() if v is not None)), wall_s=elapsed)
         rows.append(s)
     table = format_table(rows)
     print()
-    print(f"vrs-jax demo: synthetic room, {len(queries)} queries, config {pcfg.name}")
+    print(f"vrs-jax demo: synthetic room, {len(queries)} queries, config {name}")
     print(table)
-    doc = {"config": pcfg.name, "quick": args.quick, "scene": dataclasses.asdict(scfg),
+    doc = {"config": name, "quick": args.quick, "scene": dataclasses.asdict(scfg),
            "rows": rows, "total_s": time.perf_counter() - t_start}
-    (out / "demo.json").write_text(json.dumps(metrics.json_ready(doc), indent=2,
-                                              default=str) + "\n")
+    fileio.write_text(out / "demo.json", json.dumps(metrics.json_ready(doc), indent=2,
+                                                    default=str) + "\n")
     print(f"\n[demo] done in {doc['total_s'] / 60:.1f} min; details in {out / 'demo.json'}")
     return 0
 

@@ -1,32 +1,36 @@
-"""Localize a dataset's query images against a vrs-jax map.
+"""Localize query images against a vrs-jax map.
 
-    python -m experiments.localize --map MAPDIR --format F --root DIR --out OUTDIR
-        [--mode render|gt] [--patch-size P] [--top-k K] [--full-sampling] [--basename]
+    python -m experiments.localize --map MAPDIR --out OUTDIR [--mode render|real]
+        [--format F --root DIR [--query-every N]] [--patch-size P] [--top-k K]
+        [--full-sampling] [--basename] [--overwrite]
 
-Writes OUTDIR/results.txt (one line per query: ``name qw qx qy qz tx ty tz``, world-to-camera;
-``name`` is the image path relative to the dataset root, or the bare file name with
---basename as the Aachen benchmark wants) and OUTDIR/summary.json (metrics when the queries
-have ground truth, map bytes, median time per stage, rays and NeRF evaluations per query).
-A query that fails (no keypoints, no matches, RANSAC failure) still gets a line: the pose of
-its top-1 retrieved reference image, flagged in summary.json.
+The queries default to the map's own held-out split (its dataset and reader options are
+recorded in the map); --format/--root name another dataset. Query images that are map images
+are refused. Writes OUTDIR/results.txt (one line per query: ``name qw qx qy qz tx ty tz``,
+world-to-camera; --basename writes bare file names as the Aachen benchmark wants) and
+OUTDIR/summary.json (metrics when the queries have ground truth, map bytes, median time per
+stage, rays and NeRF evaluations per query, per-query diagnostics). A query that fails (no
+keypoints, no matches, RANSAC failure) still gets a line: the pose of its top-1 retrieved
+reference image, flagged in summary.json; an unreadable query image is listed with its reason.
+Existing results are never replaced without --overwrite.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from experiments.common import add_scene_args, load_scene_from_args
-from vrs_jax import pipeline
+from vrs_jax import fileio, localize, maps
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
+from vrs_jax.eval.report import summarize
 from vrs_jax.eval.results import write_results
 from vrs_jax.features.patches import PATCH_SIZES
+from vrs_jax.localize.batch import localize_scene
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,11 +38,14 @@ def build_parser() -> argparse.ArgumentParser:
                                 description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--map", required=True, help="map folder written by experiments.train*")
-    add_scene_args(p)
+    add_scene_args(p, required=False)
     p.add_argument("--out", required=True, help="output folder (results.txt, summary.json)")
-    p.add_argument("--mode", default="render", choices=["render", "gt"],
-                   help="render: VRS-NeRF (rendered patches); gt: the hierarchical baseline "
-                        "(descriptors of real reference patches)")
+    p.add_argument("--config", default="cpu-small", choices=sorted(localize.CONFIGS),
+                   help="named query-time configuration (retrieval, matching, rendering, PnP)")
+    p.add_argument("--mode", default="render", choices=["render", "real", "gt"],
+                   help="render: VRS-NeRF (NeRF-rendered patches); real: the hierarchical "
+                        "baseline (the map's stored descriptors of real reference patches); "
+                        "gt: an alias of real")
     p.add_argument("--patch-size", type=int, default=None, choices=PATCH_SIZES,
                    help="rendered patch size P (render mode; default: the map's)")
     p.add_argument("--literal", action="store_true",
@@ -50,62 +57,90 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write bare file names in results.txt (Aachen benchmark)")
     p.add_argument("--no-timing", action="store_true",
                    help="run the fused jitted localize (no per-stage times)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace results already in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
-def make_config(m: pipeline.LoadedMap, args) -> object:
-    over = {}
-    patches = m.egm_cfg.features.patches
-    if args.patch_size is not None:
-        patches = dataclasses.replace(patches, size=args.patch_size)
-    if args.literal:
-        patches = dataclasses.replace(patches, mode="literal")
-    if args.mode == "render" and patches != m.egm_cfg.features.patches:
+def make_config(m: maps.Map, args) -> localize.LocalizeConfig:
+    """The named query-time config with the command line's overrides."""
+    over = {"source": args.mode}
+    if args.patch_size is not None or args.literal:
+        patches = m.config.features.patches
+        if args.patch_size is not None:
+            patches = dataclasses.replace(patches, size=args.patch_size)
+        if args.literal:
+            patches = dataclasses.replace(patches, mode="literal")
         over["patches"] = patches
-    elif args.mode == "gt" and (args.patch_size or args.literal):
-        raise VrsError("gt mode uses the patches stored in the baseline map; --patch-size and "
-                       "--literal apply to render mode")
     if args.top_k is not None:
         over["top_k"] = args.top_k
     if args.full_sampling:
         over["depth_guided"] = False
-    return pipeline.localize_config(m.pcfg, m.egm_cfg, args.mode, **over)
+    return localize.get_config(args.config, **over)
 
 
-def write_json(path: Path, doc: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(metrics.json_ready(doc), indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
-
-
-def run(args) -> dict:
-    m = pipeline.load_map(args.map)
-    cfg = make_config(m, args)
-    scene = load_scene_from_args(args)
+def query_scene(m: maps.Map, args):
+    """The query images: the map's own held-out split, or those of the named dataset."""
+    if args.root is None and args.fmt is None:
+        src = m.source
+        if not src.format or not src.root:
+            raise VrsError("the map records no dataset; pass --format and --root", args.map)
+        args.fmt, args.root = src.format, src.root
+        opts = dict(src.options)
+        args.query_every = int(opts["query_every"]) if "query_every" in opts else None
+        args.downscale = int(opts["downscale"]) if "downscale" in opts else None
+        args.opt = [f"{k}={v}" for k, v in opts.items() if k not in ("query_every",
+                                                                   "downscale")]
+    elif args.root is None or args.fmt is None:
+        raise VrsError("pass both --format and --root (or neither: the map's own queries)")
+    scene = load_scene_from_args(args, sfm_dir=Path(args.out) / "sfm")
     queries = scene.queries()
     if len(queries) == 0:
         raise VrsError("the dataset has no query images (for formats without a split pass "
                        "--query-every N)", scene.root)
+    refuse_map_images(m, queries)
+    return queries
+
+
+def refuse_map_images(m: maps.Map, queries) -> None:
+    """VrsError if any query image is one of the map's reference images (a split mismatch
+    would leak test images into the map)."""
+    leaked = sorted(set(queries.names) & set(m.names))
+    if leaked:
+        raise VrsError(f"{len(leaked)} query images are map images ({', '.join(leaked[:3])}"
+                       f"{' ...' if len(leaked) > 3 else ''}): the split differs from the map's",
+                       queries.root)
+
+
+def run(args) -> dict:
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise VrsError("output path exists and is not a folder", out)
-    out.mkdir(parents=True, exist_ok=True)
-    results, info = pipeline.localize_queries(m, queries, cfg, progress=not args.quiet,
-                                              timed=not args.no_timing)
-    R = np.stack([np.asarray(r.R, np.float64) for r in results])
-    t = np.stack([np.asarray(r.t, np.float64) for r in results])
-    write_results(out / "results.txt", queries.names, R, t, basename=args.basename)
-    summary = pipeline.summarize(queries, results, info, m, cfg, Path(args.map))
+    if (out / "results.txt").exists() and not args.overwrite:
+        raise VrsError("holds results of an earlier run; pass --overwrite or choose another "
+                       "--out", out)
+    fileio.check_writable(out)
+    m = maps.load_map(args.map, descriptors=args.mode != "render")
+    cfg = make_config(m, args)
+    queries = query_scene(m, args)
+    results, info = localize_scene(m, queries, cfg, progress=not args.quiet,
+                                   timed=not args.no_timing)
+    ok = [i for i, r in enumerate(results) if r is not None]
+    R = np.stack([np.asarray(results[i].R, np.float64) for i in ok]) if ok else np.zeros((0, 3,
+                                                                                        3))
+    t = np.stack([np.asarray(results[i].t, np.float64) for i in ok]) if ok else np.zeros((0, 3))
+    write_results(out / "results.txt", [queries.names[i] for i in ok], R, t,
+                  basename=args.basename)
+    summary = summarize(queries, results, info, m, cfg, Path(args.map))
     summary["per_query"] = [
+        {"name": n, "error": info["errors"].get(n)} if r is None else
         {"name": n, "success": bool(r.success), "fallback": bool(r.fallback),
          "inliers": int(r.n_inliers), "matches": int(r.n_matches)}
         for n, r in zip(queries.names, results, strict=True)]
-    write_json(out / "summary.json", summary)
+    fileio.write_json(out / "summary.json", metrics.json_ready(summary))
     if summary["recall"] is not None:
-        print(metrics.format_table(summary, title=f"{cfg.mode} mode, {len(queries)} queries"))
-    print(f"{summary['n_success']}/{len(queries)} localized, {summary['n_fallback']} fallback; "
-          f"results in {out / 'results.txt'}")
+        print(metrics.format_table(summary, title=f"{cfg.source} mode, {len(queries)} queries"))
+    print(f"{summary['n_success']}/{len(queries)} localized, {summary['n_fallback']} fallback, "
+          f"{summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
     return summary
 
 

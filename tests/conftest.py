@@ -43,12 +43,12 @@ def small_synthetic_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_map(small_synthetic_scene, tmp_path_factory) -> Path:
-    """A complete map (EGM + baseline + tiny NeRF) of the small synthetic scene, test config."""
-    from vrs_jax import pipeline
+    """A complete map (EGM + real-patch descriptors + tiny NeRF) of the small synthetic scene,
+    test config."""
+    from vrs_jax import maps
     from vrs_jax.data.readers import load_scene
 
     scene = load_scene("7scenes", small_synthetic_scene)
     out = tmp_path_factory.mktemp("tiny_map") / "map"
-    pipeline.build_map(scene, out, pipeline.get_config("test"), progress=False,
-                       log=lambda s: None)
+    maps.build_map(scene, out, maps.get_config("test"), progress=False, log=lambda s: None)
     return out

@@ -1,64 +1,118 @@
-"""localize(params, egm, query): end to end on a tiny map, compile-once, batching, failures."""
+"""localize(map, query, cfg): end to end on a tiny map, compile-once, batching, failures,
+the timed path against the fused one, deduplicated correspondences."""
 
 from __future__ import annotations
 
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vrs_jax import geometry, pipeline
+from vrs_jax import geometry, localize, maps
 from vrs_jax.data.images import read_gray
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
-from vrs_jax.localize.localize import localize
-from vrs_jax.localize.query import prepare_query, stack_queries
+from vrs_jax.eval.report import summarize
+from vrs_jax.localize.batch import localize_scene
+from vrs_jax.localize.stages import unique_pairs
 
 
 @pytest.fixture(scope="module")
 def loaded(tiny_map, small_synthetic_scene):
-    m = pipeline.load_map(tiny_map)
+    m = maps.load_map(tiny_map)
     queries = load_scene("7scenes", small_synthetic_scene).queries()
     return m, queries
 
 
 def _query(m, queries, i, cfg):
     size = tuple(int(s) for s in queries.sizes[i])
-    return prepare_query(read_gray(queries.image_paths[i], size=size), queries.K[i],
-                         queries.dist[i], m.egm.vocab, cfg)
+    return localize.prepare_query(m, read_gray(queries.image_paths[i], size=size),
+                                  queries.K[i], queries.dist[i], cfg)
 
 
-def test_gt_mode_localizes_the_synthetic_queries(loaded, tiny_map):
+def test_real_mode_localizes_the_synthetic_queries(loaded, tiny_map):
     m, queries = loaded
-    cfg = pipeline.localize_config(m.pcfg, m.egm_cfg, "gt")
-    results, info = pipeline.localize_queries(m, queries, cfg, progress=False)
-    s = pipeline.summarize(queries, results, info, m, cfg, tiny_map)
+    cfg = localize.get_config("test", source="real")
+    results, info = localize_scene(m, queries, cfg, progress=False)
+    s = summarize(queries, results, info, m, cfg, tiny_map)
     assert s["n_queries"] == len(queries)
     assert s["recall"]["5cm_5deg"] >= 0.75, s
-    assert s["map_bytes"]["total"] == s["map_bytes"]["egm"] > 0
+    sizes = maps.map_bytes(tiny_map)
+    assert s["map_bytes"]["total"] == sizes["real"] > sizes["egm"] > 0
     assert set(s["timing_s"]) >= {"retrieval", "matching", "ransac", "refinement"}
+
+
+def test_gt_is_an_alias_of_real():
+    assert localize.get_config("test", source="gt").source == "real"
+    with pytest.raises(VrsError, match="source"):
+        localize.get_config("test", source="nerf")
 
 
 def test_render_mode_runs_and_compiles_once(loaded):
     m, queries = loaded
-    cfg = pipeline.localize_config(m.pcfg, m.egm_cfg, "render")
-    egm = m.egm.without_local_descriptors()
-    before = localize._cache_size()
-    outs = [localize(m.ilm, egm, _query(m, queries, i, cfg), cfg=cfg) for i in range(3)]
-    assert localize._cache_size() == before + 1  # one compilation for all queries
+    cfg = localize.get_config("test")
+    vrs = m.without_descriptors()
+    before = localize.localize._cache_size()
+    outs = [localize.localize(vrs, _query(m, queries, i, cfg), cfg) for i in range(3)]
+    assert localize.localize._cache_size() == before + 1  # one compilation for all queries
     for r in outs:
         assert np.all(np.isfinite(np.asarray(r.R))) and np.all(np.isfinite(np.asarray(r.t)))
         assert bool(r.success) != bool(r.fallback)
         assert int(r.n_matches) >= int(r.n_inliers)
 
 
+@pytest.mark.parametrize("source", ["real", "render"])
+def test_timed_and_fused_give_identical_results(loaded, source):
+    m, queries = loaded
+    cfg = localize.get_config("test", source=source)
+    q = _query(m, queries, 0, cfg)
+    fused = localize.localize(m, q, cfg)
+    timed, times = localize.localize_timed(m, q, cfg)
+    for a, b in zip(jax.tree.leaves(fused), jax.tree.leaves(timed), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
+    assert set(times) == set(localize.STAGE_NAMES)
+    assert (times["render"] > 0) == (source == "render")
+
+
+def test_stages_stop_after_matching(loaded):
+    m, queries = loaded
+    cfg = localize.get_config("test", source="real")
+    s = localize.run_stages(m, _query(m, queries, 0, cfg), cfg, until="matching")
+    assert {"idx", "desc", "uv", "X", "ok"} <= set(s) and "result" not in s
+
+
+def test_unique_pairs_keeps_each_pair_once():
+    qi = jnp.array([0, 1, 0, 2, 0, 1, 3])
+    pid = jnp.array([5, 6, 5, 7, 9, 6, 8])
+    ok = jnp.array([True, True, True, True, True, False, False])
+    keep = np.asarray(unique_pairs(qi, pid, ok))
+    # (0,5) twice -> once; (1,6) valid once (its repeat is invalid); (0,9) is another pair
+    np.testing.assert_array_equal(keep, [True, True, False, True, True, False, False])
+
+
+def test_duplicates_cannot_inflate_inliers(loaded):
+    m, queries = loaded
+    cfg = localize.get_config("test", source="real")
+    q = _query(m, queries, 0, cfg)
+    s = localize.run_stages(m, q, cfg, until="matching")
+    ok = np.asarray(s["ok"])
+    kq = q.mask.shape[0]
+    qi = np.tile(np.arange(kq), len(np.asarray(s["idx"])))[ok]
+    X = np.asarray(s["X"])[ok]
+    pairs = {(int(a), tuple(np.round(x, 6))) for a, x in zip(qi, X, strict=True)}
+    assert len(pairs) == int(ok.sum())  # every correspondence fed to RANSAC is distinct
+    r = localize.localize(m, q, cfg)
+    assert int(r.n_inliers) <= int(r.n_matches) == int(ok.sum())
+
+
 def test_vmap_over_queries_matches_single_calls(loaded):
     m, queries = loaded
-    cfg = pipeline.localize_config(m.pcfg, m.egm_cfg, "gt")
+    cfg = localize.get_config("test", source="real")
     qs = [_query(m, queries, i, cfg) for i in range(2)]
-    single = [localize(None, m.egm, q, cfg=cfg) for q in qs]
-    batched = jax.vmap(lambda q: localize(None, m.egm, q, cfg=cfg))(stack_queries(qs))
+    single = [localize.localize(m, q, cfg) for q in qs]
+    batched = jax.vmap(lambda q: localize.localize(m, q, cfg))(localize.stack_queries(qs))
     for i, r in enumerate(single):
         np.testing.assert_array_equal(np.asarray(batched.retrieved[i]), np.asarray(r.retrieved))
         np.testing.assert_allclose(np.asarray(batched.t[i]), np.asarray(r.t), atol=1e-3)
@@ -66,15 +120,23 @@ def test_vmap_over_queries_matches_single_calls(loaded):
 
 def test_query_without_keypoints_falls_back_to_top1_reference(loaded):
     m, queries = loaded
-    cfg = pipeline.localize_config(m.pcfg, m.egm_cfg, "render")
+    cfg = localize.get_config("test")
     blank = np.full((int(queries.sizes[0, 1]), int(queries.sizes[0, 0])), 0.5, np.float32)
-    q = prepare_query(blank, queries.K[0], None, m.egm.vocab, cfg)
+    q = localize.prepare_query(m, blank, queries.K[0], None, cfg)
     assert not np.asarray(q.mask).any()
-    r = localize(m.ilm, m.egm.without_local_descriptors(), q, cfg=cfg)
+    r = localize.localize(m, q, cfg)
     assert bool(r.fallback) and not bool(r.success) and int(r.n_matches) == 0
     top1 = int(r.retrieved[0])
     np.testing.assert_allclose(np.asarray(r.R), np.asarray(m.egm.R[top1]))
     np.testing.assert_allclose(np.asarray(r.t), np.asarray(m.egm.t[top1]))
+
+
+def test_real_mode_needs_the_descriptors(tiny_map, loaded):
+    _, queries = loaded
+    m = maps.load_map(tiny_map, descriptors=False)
+    cfg = localize.get_config("test", source="real")
+    with pytest.raises(VrsError, match="real-patch descriptors"):
+        localize.localize(m, _query(m, queries, 0, cfg), cfg)
 
 
 def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene, tmp_path):
@@ -82,38 +144,50 @@ def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene
     from vrs_jax.eval.results import read_results
 
     out = tmp_path / "loc"
-    rc = cli.main(["--map", str(tiny_map), "--format", "7scenes", "--root",
-                   str(small_synthetic_scene), "--out", str(out), "--mode", "gt", "--quiet"])
+    # no --format/--root: the map's own held-out queries
+    rc = cli.main(["--map", str(tiny_map), "--config", "test", "--out", str(out), "--mode",
+                   "real", "--quiet"])
     assert rc == 0
     res = read_results(out / "results.txt")
     queries = load_scene("7scenes", small_synthetic_scene).queries()
     assert sorted(res) == sorted(queries.names)
     s = json.loads((out / "summary.json").read_text())
     for key in ("n_queries", "median_t_cm", "median_R_deg", "recall", "map_bytes", "timing_s",
-                "rays_per_query", "nerf_evals_per_query", "mode", "config"):
+                "rays_per_query", "nerf_evals_per_query", "mode", "config", "per_query"):
         assert key in s
-    assert set(s["recall"]) == {"1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg",
-                                "50cm_5deg", "500cm_10deg"}
-    assert set(s["map_bytes"]) == {"egm", "ilm", "total"}
+    assert s["mode"] == "real"
     # the written poses are the localized ones: errors agree with the summary's median
     dt = [geometry.pose_errors(*res[n], queries.R[i], queries.t[i])[0]
           for i, n in enumerate(queries.names)]
     assert np.median(dt) * 100 == pytest.approx(s["median_t_cm"], rel=1e-3, abs=1e-3)
+    # a second run never replaces these results silently
+    before = (out / "results.txt").read_bytes()
+    assert cli.main(["--map", str(tiny_map), "--out", str(out), "--quiet"]) == 2
+    assert (out / "results.txt").read_bytes() == before
+
+
+def test_localize_refuses_queries_that_are_map_images(loaded, small_synthetic_scene):
+    from experiments import localize as cli
+
+    m, queries = loaded
+    cli.refuse_map_images(m, queries)  # the map's own split: fine
+    leaky = load_scene("7scenes", small_synthetic_scene).references().subset([0, 1])
+    with pytest.raises(VrsError, match="are map images"):
+        cli.refuse_map_images(m, leaky)
 
 
 def test_missing_and_wrong_version_maps_give_one_line_errors(tiny_map, tmp_path, capsys):
     from experiments import localize as cli
 
     with pytest.raises(VrsError, match="map folder not found"):
-        pipeline.load_map(tmp_path / "nope")
+        maps.load_map(tmp_path / "nope")
     bad = tmp_path / "bad"
     bad.mkdir()
     meta = json.loads((tiny_map / "map.json").read_text())
     meta["format_version"] = 999
     (bad / "map.json").write_text(json.dumps(meta))
     with pytest.raises(VrsError, match="format version 999"):
-        pipeline.load_map(bad)
-    rc = cli.main(["--map", str(bad), "--format", "7scenes", "--root", str(tmp_path),
-                   "--out", str(tmp_path / "o")])
+        maps.load_map(bad)
+    rc = cli.main(["--map", str(bad), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "format version 999" in err[0]

@@ -1,6 +1,6 @@
 """Camera geometry as small pure functions, for numpy and jax arrays alike.
 
-Conventions (DESIGN.md section 3), fixed once for the whole project:
+Conventions (docs/design.md, section 3), fixed once for the whole project:
 
 - A pose is world-to-camera ``(R, t)``: ``x_cam = R @ x_world + t`` (COLMAP's convention).
 - Camera axes are OpenCV's: x right, y down, z forward.
@@ -293,6 +293,21 @@ def pixel_rays(K: Array, R: Array, t: Array, uv: Array, dist: Array | None = Non
     d_world = d_cam @ R  # R^T d for row vectors
     o = xp.broadcast_to(camera_center(R, t)[..., None, :], d_world.shape)
     return o, d_world
+
+
+# mip-NeRF: a square pixel of side w has the second moment of a disc of radius w * 2/sqrt(12).
+PIXEL_TO_RADIUS = 2.0 / float(np.sqrt(12.0))
+
+
+def cone_radius(K: Array, spacing: Array = 1.0) -> Array:
+    """Mip-NeRF cone radius at unit depth of rays ``spacing`` pixels apart (the one definition).
+
+    Directions are scaled to unit camera depth (``K^-1 [u, v, 1]``), so a spacing of ``s`` pixels
+    is ``s / f`` on the z = 1 plane, with ``f = sqrt(fx fy)`` (the focal length of a pixel of
+    the same area). Args: K [..., 3, 3]; spacing [...] pixels. Returns [...].
+    """
+    xp = _xp(K, spacing)
+    return spacing * PIXEL_TO_RADIUS / xp.sqrt(K[..., 0, 0] * K[..., 1, 1])
 
 
 def pixel_grid(width: int, height: int) -> np.ndarray:

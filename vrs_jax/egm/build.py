@@ -1,4 +1,4 @@
-"""The mapping pipeline: reference images with known poses -> EGM (and the baseline map).
+"""The mapping pipeline: reference images with known poses -> EGM (+ real-patch descriptors).
 
     features (SIFT keypoints, canonical patches, JAX descriptor)      vrs_jax.features
     -> covisible pairs from the known poses                           egm.pairs
@@ -6,11 +6,12 @@
     -> 3D points triangulated with the known poses (pycolmap)         egm.triangulate
     -> per image the keypoints with a 3D point, chosen by track length and spread
     -> VLAD vocabulary and global descriptors                         egm.retrieval
-    -> EGM (+ the local descriptors of the kept keypoints for the baseline map)
+    -> EGM, with the real-patch descriptors of the kept keypoints
 
-The baseline map (the paper's "15x15 (GT)" row) is the same map plus the descriptors of the
-kept keypoints' patches read from the real reference images -- the very descriptors computed
-for matching here, by the same ``extract_patches -> describe`` path the rendered patches take.
+The real-patch descriptors (the paper's "15x15 (GT)" row, the hierarchical baseline) are the
+very descriptors computed for matching here, by the same ``extract_patches -> describe`` path
+the rendered patches take; a map stores them apart from its EGM (:mod:`vrs_jax.maps`), so the
+VRS map's size never includes them.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from tqdm.auto import tqdm
 from vrs_jax.data.images import read_image
 from vrs_jax.data.scene import Scene
 from vrs_jax.egm import map as egm_map
-from vrs_jax.egm.map import EGM, baseline_bytes, make_egm, map_bytes
+from vrs_jax.egm.map import EGM, make_egm
 from vrs_jax.egm.pairs import PairsConfig, estimate_depth_ranges, reference_pairs
 from vrs_jax.egm.retrieval import RetrievalConfig, global_descriptors, learn_vocabulary
 from vrs_jax.egm.triangulate import (
@@ -58,8 +59,6 @@ class EGMConfig:
     # first within a cell, so that a textured corner does not take the whole budget (PnP is
     # better conditioned with points spread over the image).
     selection_grid: tuple[int, int] = (8, 8)
-    # Keep the local descriptors (the hierarchical-method baseline map).
-    baseline: bool = False
 
 
 CONFIGS: dict[str, EGMConfig] = {
@@ -141,7 +140,7 @@ def select_keypoints(kp: np.ndarray, point_of_kp: np.ndarray, track_len: np.ndar
 
 
 def _assemble(scene: Scene, kps, descs, tri: Triangulation, cfg: EGMConfig):
-    """Per-image kept keypoints, point links and (baseline only) local descriptors; points
+    """Per-image kept keypoints, point links and real-patch descriptors; points
     that no kept keypoint links are dropped."""
     sel = [select_keypoints(kps[i], tri.point_of_kp[i], tri.track_lengths, tri.errors,
                             scene.sizes[i], cfg.k_max, cfg.selection_grid)
@@ -152,7 +151,7 @@ def _assemble(scene: Scene, kps, descs, tri: Triangulation, cfg: EGMConfig):
     tri = subset_points(tri, used)  # reindexes point_of_kp
     kp_rows = [kps[i][s] for i, s in enumerate(sel)]
     pi_rows = [tri.point_of_kp[i][s] for i, s in enumerate(sel)]
-    ld_rows = [descs[i][s] for i, s in enumerate(sel)] if cfg.baseline else None
+    ld_rows = [descs[i][s] for i, s in enumerate(sel)]
     return tri, kp_rows, pi_rows, ld_rows
 
 
@@ -162,12 +161,12 @@ def build_egm(scene: Scene, cfg: EGMConfig = EGMConfig(), progress: bool = True,
 
     Args:
       scene: a Scene; its reference images (``~is_query``) with poses are mapped.
-      cfg: :class:`EGMConfig` (``cfg.baseline`` keeps the local descriptors).
+      cfg: :class:`EGMConfig`.
       progress: tqdm progress bars.
       verbose: keep COLMAP's log lines.
     Returns:
-      (egm, stats): stats holds counts, mean track length, median reprojection error, the
-      byte breakdown of this map and of the other variant (VRS map vs baseline), timings.
+      (egm, stats): the EGM with its real-patch descriptors (``local_desc``); stats holds
+      counts, mean track length, median reprojection error and timings.
     Raises:
       VrsError if no reference image has a pose, or no 3D point survives.
     """
@@ -216,17 +215,12 @@ def build_egm(scene: Scene, cfg: EGMConfig = EGMConfig(), progress: bool = True,
     vocab = learn_vocabulary(descs, cfg.retrieval)
     gdesc = global_descriptors(descs, None, vocab)
     egm = make_egm(tri.points3d, refs.R, refs.t, refs.K, refs.dist, refs.sizes, kp_rows,
-                   pi_rows, gdesc, vocab, refs.names, k_max=cfg.k_max, local_desc=ld_rows,
-                   config=cfg.name)
+                   pi_rows, gdesc, vocab, refs.names, k_max=cfg.k_max, local_desc=ld_rows)
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
 
     err = egm_map.reprojection_errors(egm)
     counts = np.asarray(egm.kp_mask).sum(1)
-    # both variants' byte counts (the one not built is computed without materialising it)
-    b_vrs = map_bytes(egm.without_local_descriptors())
-    b_base = (map_bytes(egm) if cfg.baseline
-              else baseline_bytes(egm, cfg.features.descriptor.dim))
     no_points = [refs.names[i] for i in np.flatnonzero(counts == 0)]
     if no_points:
         warnings.warn(f"{len(no_points)} reference images have no 3D point in the map: "
@@ -234,7 +228,6 @@ def build_egm(scene: Scene, cfg: EGMConfig = EGMConfig(), progress: bool = True,
                       stacklevel=2)
     stats = {
         "config": cfg.name,
-        "baseline": cfg.baseline,
         "reference_images": len(refs),
         "images_without_points": len(no_points),
         "points": egm.num_points,
@@ -249,10 +242,6 @@ def build_egm(scene: Scene, cfg: EGMConfig = EGMConfig(), progress: bool = True,
         **mstats,
         "points_triangulated": int(tri.stats.get("points_pycolmap", tri.num_points)),
         "points_outside_depth_range": int(tri.stats.get("points_outside_depth_range", 0)),
-        "bytes": b_base if cfg.baseline else b_vrs,
-        "bytes_vrs_map": b_vrs["total"],
-        "bytes_baseline_map": b_base["total"],
-        "baseline_to_vrs_ratio": b_base["total"] / max(b_vrs["total"], 1),
         "timings": timings,
     }
     return egm, stats
@@ -260,17 +249,12 @@ def build_egm(scene: Scene, cfg: EGMConfig = EGMConfig(), progress: bool = True,
 
 def format_stats(stats: dict) -> str:
     """A few human-readable lines of build statistics."""
-    b = stats["bytes"]
     lines = [
-        f"map ({'baseline' if stats['baseline'] else 'VRS'}, config {stats['config']}): "
+        f"EGM (config {stats['config']}): "
         f"{stats['reference_images']} images, {stats['points']} points, mean track length "
         f"{stats['mean_track_length']:.2f}, median reprojection error "
         f"{stats['median_reprojection_error_px']:.3f} px, "
         f"{stats['keypoints_per_image_mean']:.0f} keypoints/image",
-        "bytes: " + ", ".join(f"{k} {v}" for k, v in b.items() if v and not k.startswith("total"))
-        + f"; total {b['total']}",
-        f"VRS map (no local descriptors) {stats['bytes_vrs_map']} B vs baseline map "
-        f"{stats['bytes_baseline_map']} B: {stats['baseline_to_vrs_ratio']:.1f}x",
         "time: " + ", ".join(f"{k[:-2]} {v:.1f}s" for k, v in stats["timings"].items()),
     ]
     return "\n".join(lines)

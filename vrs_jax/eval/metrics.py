@@ -13,6 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from vrs_jax import geometry
+from vrs_jax.fileio import json_ready  # noqa: F401  (re-exported: reports use it)
 
 # Recall thresholds (translation in metres, rotation in degrees), keyed as in summary.json:
 # 5cm/5deg is 7Scenes' standard, 25cm/2deg Cambridge's, 25cm/2deg + 50cm/5deg + 5m/10deg
@@ -118,24 +119,6 @@ def cumulative_curve(errors: np.ndarray, max_error: float | None = None
         x = np.concatenate([x[keep], [max_error]])
         y = np.concatenate([y[keep], [np.mean(e <= max_error)]])
     return x, y
-
-
-def json_ready(obj):
-    """A copy of nested dicts/lists/numbers with non-finite floats as None (strict JSON) and
-    numpy scalars/arrays as Python numbers/lists."""
-    if isinstance(obj, Mapping):
-        return {str(k): json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_ready(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer, int)):
-        return int(obj)
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
 
 
 def format_table(summary: Mapping, title: str | None = None) -> str:

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from vrs_jax import geometry
+from vrs_jax import fileio, geometry
 from vrs_jax.errors import VrsError, require_file
 
 
@@ -64,15 +63,7 @@ def write_results(path: str | Path, names: Sequence[str], R: np.ndarray, t: np.n
     text = "".join(line + "\n" for line in lines)
     if not path.parent.is_dir():
         raise VrsError("output folder not found", path.parent)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return fileio.write_text(path, text)
 
 
 def read_results(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:

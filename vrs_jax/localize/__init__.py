@@ -1,1 +1,17 @@
-"""Localization: patch rays, patch rendering, PnP seed and refinement, localize()."""
+"""Localization: query preparation, the stages (retrieval, patch rendering, description,
+matching, PnP), and ``localize(map, query, cfg)``.
+
+    from vrs_jax import maps, localize
+    m = maps.load_map("maps/lego")
+    cfg = localize.get_config("cpu-small")            # cfg.source: "render" or "real"
+    q = localize.prepare_query(m, gray, K, dist, cfg)
+    result = localize.localize(m, q, cfg)
+"""
+
+from vrs_jax.localize.config import CONFIGS, LocalizeConfig, get_config
+from vrs_jax.localize.query import Query, prepare_query, stack_queries
+from vrs_jax.localize.run import localize, localize_timed, run_stages
+from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
+
+__all__ = ["CONFIGS", "STAGE_NAMES", "LocalizeConfig", "LocalizeResult", "Query", "get_config",
+           "localize", "localize_timed", "prepare_query", "run_stages", "stack_queries"]

@@ -1,5 +1,9 @@
-"""Localization settings: one frozen dataclass (hashable, so a static jit argument).
+"""Query-time settings: one frozen dataclass (hashable, so a static jit argument).
 
+Only what may change between queries of one map lives here: where the reference descriptors
+come from, retrieval, matching, patch rendering samples and PnP. The keypoint detector, the
+patch geometry and the descriptor are the map's (``map.config.features``): query descriptors
+are compared with descriptors of the map keypoints' patches, so they must be computed alike.
 The authors released no code, so every value here except the patch size (15, the paper's) is
 ours; each carries its reason.
 """
@@ -9,30 +13,31 @@ from __future__ import annotations
 import dataclasses
 
 from vrs_jax.errors import VrsError
-from vrs_jax.features.descriptor import DescriptorConfig
-from vrs_jax.features.keypoints import KeypointConfig
 from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.pnp import PnPConfig
 
-MODES = ("render", "gt")
+# "render": describe NeRF-rendered patches of the reference keypoints (VRS-NeRF);
+# "real": match against the map's stored descriptors of the real reference patches (the
+# hierarchical-method baseline, the paper's "GT" row). "gt" is accepted for "real".
+SOURCES = ("render", "real")
+ALIASES = {"gt": "real"}
 
 
 @dataclasses.dataclass(frozen=True)
 class LocalizeConfig:
-    """Everything ``localize`` needs besides the maps and the query."""
+    """Everything ``localize`` needs besides the map and the query."""
 
-    # "render": describe NeRF-rendered patches (VRS-NeRF); "gt": describe the real reference
-    # patches stored in the baseline map (the hierarchical-method baseline).
-    mode: str = "render"
+    source: str = "render"
     # Retrieved reference images per query. The paper (like hloc on 7Scenes) uses a handful;
     # each one costs K_max * P^2 rendered rays, so 5 balances recall and render time.
     top_k: int = 5
-    # Query keypoints kept (by SIFT response), padded to this static count.
-    query_max_keypoints: int = 1024
-    keypoints: KeypointConfig = KeypointConfig(max_keypoints=1024)
-    patches: PatchConfig = PatchConfig()
-    descriptor: DescriptorConfig = DescriptorConfig()
-    # Lowe ratio for query-to-rendered matching. Rendered patches are slightly blurrier than
+    # Query keypoints kept (by SIFT response), padded to this static count (the detector's
+    # other settings are the map's).
+    query_keypoints: int = 1024
+    # Render mode only: patches rendered (and query patches read) with another geometry than
+    # the map's, e.g. the patch-size ablation; None uses the map's.
+    patches: PatchConfig | None = None
+    # Lowe ratio for query-to-reference matching. Rendered patches are slightly blurrier than
     # real ones, so distances are larger overall; 0.9 with the mutual check keeps enough
     # matches while RANSAC removes the rest (measured on the synthetic scene).
     ratio: float = 0.9
@@ -48,23 +53,28 @@ class LocalizeConfig:
     pnp: PnPConfig = PnPConfig()
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise VrsError(f"localize mode must be one of {MODES}, got {self.mode!r}")
+        src = ALIASES.get(self.source, self.source)
+        if src not in SOURCES:
+            raise VrsError(f"localize source must be one of {SOURCES}, got {self.source!r}")
+        object.__setattr__(self, "source", src)
         if self.top_k < 1:
             raise VrsError("LocalizeConfig.top_k must be >= 1")
+        if self.query_keypoints < 1:
+            raise VrsError("LocalizeConfig.query_keypoints must be >= 1")
+        if self.source == "real" and self.patches is not None:
+            raise VrsError("real-patch mode uses the patches stored in the map; a patch "
+                           "override applies to render mode only")
 
 
 CONFIGS: dict[str, LocalizeConfig] = {
-    # The paper's setting on a GPU: 15x15 patches, 2048 keypoints per reference image (set in
-    # the EGM), top-5 retrieval, full coarse + fine sampling available (depth_guided False).
-    "paper": LocalizeConfig(top_k=5, query_max_keypoints=2048,
-                            keypoints=KeypointConfig(max_keypoints=2048)),
-    # Two CPU cores: fewer retrieved images and query keypoints, depth-guided sampling.
-    "cpu-small": LocalizeConfig(top_k=3, query_max_keypoints=1024, narrow_samples=16),
-    # Unit tests.
-    "test": LocalizeConfig(top_k=2, query_max_keypoints=256,
-                           keypoints=KeypointConfig(max_keypoints=256),
-                           patches=PatchConfig(size=9), narrow_samples=8, render_chunk=4096),
+    # The paper's setting on a GPU: top-5 retrieval, 2048 query keypoints, every patch ray
+    # rendered with the map's full coarse + fine sampling (depth_guided False).
+    "paper": LocalizeConfig(top_k=5, query_keypoints=2048, depth_guided=False),
+    # Two CPU cores: top-3 retrieval, 1024 query keypoints, depth-guided sampling with 16
+    # samples per ray around the keypoint's 3D point.
+    "cpu-small": LocalizeConfig(top_k=3, query_keypoints=1024, narrow_samples=16),
+    # Unit tests: top-2 retrieval, 256 query keypoints, 8 samples per ray.
+    "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, render_chunk=4096),
 }
 
 
@@ -72,4 +82,7 @@ def get_config(name: str, **overrides) -> LocalizeConfig:
     """Named LocalizeConfig with optional field overrides; VrsError for an unknown name."""
     if name not in CONFIGS:
         raise VrsError(f"unknown localize config {name!r}; choose from {sorted(CONFIGS)}")
-    return dataclasses.replace(CONFIGS[name], **overrides)
+    try:
+        return dataclasses.replace(CONFIGS[name], **overrides)
+    except TypeError as e:
+        raise VrsError(f"bad localize setting: {e}") from None

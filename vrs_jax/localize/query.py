@@ -6,7 +6,7 @@ shapes; the result is a pytree of fixed shapes that :func:`vrs_jax.localize.loca
 
 from __future__ import annotations
 
-from pathlib import Path
+import dataclasses
 from typing import Any
 
 import flax.struct
@@ -15,17 +15,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax import geometry
-from vrs_jax.data.images import read_gray
-from vrs_jax.egm.retrieval import Vocabulary, global_descriptor
+from vrs_jax.egm.retrieval import global_descriptor
+from vrs_jax.features.descriptor import DescriptorConfig
 from vrs_jax.features.extract import extract_features
+from vrs_jax.features.keypoints import KeypointConfig
+from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.maps import Map
 
 Array = Any
 
 
 @flax.struct.dataclass
 class Query:
-    """One query image, ready for ``localize`` (fixed shapes; Kq = cfg.query_max_keypoints).
+    """One query image, ready for ``localize`` (fixed shapes; Kq = cfg.query_keypoints).
 
     keypoints: [Kq, 4] (x, y, scale, angle) as detected (COLMAP convention).
     points2d: [Kq, 2] keypoint positions with the query's lens distortion removed (what PnP
@@ -52,24 +55,34 @@ def undistort_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> 
     return uvu
 
 
-def prepare_query(gray: np.ndarray, K: np.ndarray, dist: np.ndarray | None, vocab: Vocabulary,
+def query_features(m: Map, cfg: LocalizeConfig) -> tuple[KeypointConfig, PatchConfig,
+                                                           DescriptorConfig]:
+    """The detector, patch and descriptor settings of a map's queries: the map's, with the
+    query's keypoint budget and the config's patch override (render mode)."""
+    f = m.config.features
+    kp = dataclasses.replace(f.keypoints, max_keypoints=cfg.query_keypoints)
+    return kp, cfg.patches or f.patches, f.descriptor
+
+
+def prepare_query(m: Map, gray: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
                   cfg: LocalizeConfig) -> Query:
     """Keypoints, descriptors and global descriptor of a query image (host function).
 
     Args:
+      m: the map (its feature settings and VLAD vocabulary).
       gray: [H, W] float32 grey image in [0, 1].
       K: [3, 3] intrinsics; dist: [5] OpenCV distortion or None.
-      vocab: the map's VLAD vocabulary.
-      cfg: LocalizeConfig (keypoint, patch and descriptor settings; padding size).
+      cfg: LocalizeConfig (the query keypoint budget: the padded size).
     Returns:
-      Query with arrays padded to cfg.query_max_keypoints. An image with no keypoints gives an
+      Query with arrays padded to cfg.query_keypoints. An image with no keypoints gives an
       all-False mask (localize then returns a flagged fallback result).
     """
-    kq = cfg.query_max_keypoints
-    kp, desc = extract_features(gray, cfg.keypoints, cfg.patches, cfg.descriptor)
+    kq = cfg.query_keypoints
+    kp_cfg, patch_cfg, desc_cfg = query_features(m, cfg)
+    kp, desc = extract_features(gray, kp_cfg, patch_cfg, desc_cfg)
     kp, desc = kp[:kq], desc[:kq]
     n = len(kp)
-    d = cfg.descriptor.dim
+    d = desc_cfg.dim
     kp_pad = np.zeros((kq, 4), np.float32)
     kp_pad[:, 2] = 1.0
     kp_pad[:n] = kp
@@ -80,17 +93,11 @@ def prepare_query(gray: np.ndarray, K: np.ndarray, dist: np.ndarray | None, voca
     pts = np.zeros((kq, 2), np.float32)
     if n:
         pts[:n] = undistort_points(kp[:, :2], K, dist)
-    g = global_descriptor(desc, None, vocab)
+    g = global_descriptor(desc, None, m.egm.vocab)
     return Query(keypoints=jnp.asarray(kp_pad), points2d=jnp.asarray(pts),
                  desc=jnp.asarray(desc_pad), mask=jnp.asarray(mask),
                  global_desc=jnp.asarray(g, jnp.float32),
                  K=jnp.asarray(np.asarray(K, np.float32)))
-
-
-def load_query(path: str | Path, K: np.ndarray, dist: np.ndarray | None, vocab: Vocabulary,
-               cfg: LocalizeConfig, size: tuple[int, int] | None = None) -> Query:
-    """Read an image file (VrsError if unreadable) and prepare it as a Query."""
-    return prepare_query(read_gray(path, size=size), K, dist, vocab, cfg)
 
 
 def stack_queries(queries: list[Query]) -> Query:

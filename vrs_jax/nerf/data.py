@@ -4,8 +4,7 @@ Rays are pixel cones in COLMAP's pixel convention (``geometry.pixel_rays``): the
 pixel ``img[i, j]`` passes through ``(u, v) = (j + 0.5, i + 0.5)`` and its direction has
 camera-frame z = 1, so the ray parameter t IS the z-depth; near/far (from depth priors,
 which are z-depths) are therefore directly t bounds. The cone radius at t = 1 is
-``2 / sqrt(12) / f`` (mip-NeRF's pixel radius: 1 / f is the spacing of neighbouring pixel
-directions on the z = 1 plane).
+:func:`vrs_jax.geometry.cone_radius` (mip-NeRF's pixel radius).
 
 Training images stay on the device as uint8 [N, H, W, 3] plus their cameras; every step
 draws random (image, pixel) pairs from a cluster's image list and generates the rays inside
@@ -30,13 +29,9 @@ from vrs_jax.errors import VrsError
 
 Array = jax.Array
 
-PIXEL_RADIUS = 2.0 / math.sqrt(12.0)  # mip-NeRF: radius of a disk with a pixel's variance
-
-
 def pixel_radii(K: np.ndarray) -> np.ndarray:
     """Cone radius at t = 1 of one pixel, per camera: K [..., 3, 3] -> [...]."""
-    K = np.asarray(K, dtype=np.float64)
-    return PIXEL_RADIUS / np.sqrt(K[..., 0, 0] * K[..., 1, 1])
+    return geometry.cone_radius(np.asarray(K, dtype=np.float64))
 
 
 # ----------------------------------------------------------------------------- near / far

@@ -1,14 +1,14 @@
 """The implicit learning map (ILM): C per-cluster NeRFs stacked on a leading axis.
 
-Saved as ONE ``.npz`` file (written to a temporary name, then renamed: atomic) holding
+Saved as ONE ``.npz`` file (written atomically, :mod:`vrs_jax.fileio`) holding
 every array plus a JSON header with the format version and the full config, so a map is
 self-describing and its size on disk is simply the file size.
 """
 
 from __future__ import annotations
 
+import io
 import json
-import os
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct, traverse_util
 
+from vrs_jax import fileio
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.model import Field, init_params, select_field
@@ -80,29 +81,36 @@ def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
     return out
 
 
-def save_ilm(path: str | Path, ilm: ILM) -> Path:
-    """Write the map to ``path`` (.npz), atomically. Returns the path."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+def to_bytes(ilm: ILM) -> bytes:
+    """The ILM as one npz file's bytes: every array plus a JSON header (format version, the
+    full NerfConfig, the image names)."""
     arrays = _flatten(ilm)
     meta = {"format": "vrs_jax.ilm", "format_version": FORMAT_VERSION,
             "config": ilm.config.to_dict(), "image_names": list(ilm.image_names)}
     arrays[_META] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, p)
-    return p
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def save_ilm(path: str | Path, ilm: ILM) -> Path:
+    """Write the ILM to ``path`` (.npz), atomically. Returns the path."""
+    return fileio.write_bytes(path, to_bytes(ilm))
 
 
 def load_ilm(path: str | Path) -> ILM:
-    """Read a map written by :func:`save_ilm`; VrsError for a missing, corrupt or
+    """Read an ILM written by :func:`save_ilm`; VrsError for a missing, corrupt or
     other-version file."""
     p = Path(path)
     if not p.is_file():
         raise VrsError("ILM map file not found", p)
+    return from_bytes(p.read_bytes(), p)
+
+
+def from_bytes(raw: bytes, p: Path) -> ILM:
+    """Inverse of :func:`to_bytes` (``p`` names the file in errors)."""
     try:
-        with np.load(p, allow_pickle=False) as z:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
         raise VrsError(f"corrupt or unreadable ILM map ({type(e).__name__})", p) from None
@@ -117,7 +125,7 @@ def load_ilm(path: str | Path) -> ILM:
     if meta.get("format_version") != FORMAT_VERSION:
         raise VrsError(f"ILM map format version {meta.get('format_version')} is not supported "
                        f"(expected {FORMAT_VERSION}); retrain the map", p)
-    cfg = NerfConfig.from_dict(meta["config"])
+    cfg = NerfConfig.from_dict(meta["config"], p)
     try:
         params = traverse_util.unflatten_dict(
             {k[len("params/"):]: jnp.asarray(v) for k, v in arrays.items()

@@ -4,7 +4,7 @@ VRS-NeRF's map renders only small patches around the reference images' 3D-linked
 always from the reference cameras themselves. A NeRF trained on whole images spends most of
 its (on a CPU, scarce) capacity and steps on pixels no patch ever covers. This module builds
 a second pool of training rays: the canonical patch samples of every map keypoint, cast as
-the same cones the localizer casts (:func:`vrs_jax.localize.rays.patch_rays`: radius from
+the same cones the localizer casts (:func:`vrs_jax.features.rays.patch_rays`: radius from
 the sample spacing), with targets read from the real image through the same anti-aliased
 blur stack as the real ("GT") patches (:func:`vrs_jax.features.patches.extract_patches`).
 Training mixes this pool with ordinary pixel rays (``NerfConfig.patch_ray_fraction``), so the
@@ -24,7 +24,7 @@ import numpy as np
 from vrs_jax.data.images import read_image
 from vrs_jax.data.scene import Scene
 from vrs_jax.features.patches import PatchConfig, extract_patches
-from vrs_jax.localize.rays import patch_rays
+from vrs_jax.features.rays import patch_rays
 
 Array = Any
 

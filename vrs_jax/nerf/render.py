@@ -15,7 +15,6 @@ from vrs_jax import geometry
 from vrs_jax.data.images import write_image
 from vrs_jax.data.scene import Scene
 from vrs_jax.nerf.config import NerfConfig
-from vrs_jax.nerf.data import PIXEL_RADIUS
 from vrs_jax.nerf.ilm import ILM
 from vrs_jax.nerf.model import Field, render_rays, select_field
 
@@ -39,7 +38,7 @@ def image_renderer(cfg: NerfConfig, width: int, height: int, use_dist: bool
     def fn(fields: Field, c, K, R, t, dist, near, far):
         field = select_field(fields, c)
         o, d = geometry.pixel_rays(K, R, t, uv, dist if use_dist else None)
-        r = jnp.full((n,), PIXEL_RADIUS, jnp.float32) / jnp.sqrt(K[0, 0] * K[1, 1])
+        r = jnp.full((n,), geometry.cone_radius(K), jnp.float32)
         rays = {"o": o, "d": d, "r": r}
         rays = {k: jnp.concatenate([v, jnp.repeat(v[:1], pad, axis=0)]) for k, v in rays.items()}
         rays = jax.tree.map(lambda x: x.reshape((-1, chunk) + x.shape[1:]), rays)

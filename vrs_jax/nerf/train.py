@@ -412,8 +412,9 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     Args:
       prep: from :func:`prepare`.
       out_dir: checkpoints go to ``out_dir/checkpoints`` (None: no checkpoints).
-      steps: total step count to reach (resume counts the steps already done).
-      minutes: wall-clock budget of this call (compilation included).
+      steps: total step count to reach (default the config's ``max_steps``; resume counts
+        the steps already done).
+      minutes: wall-clock cap of this call (compilation included); a later call resumes.
       resume: continue from the latest checkpoint in out_dir when there is one.
       mesh: device mesh for the cluster axis (default: all devices, see cluster_mesh).
     Raises:
@@ -421,7 +422,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
       good checkpoint stays on disk.
     """
     cfg = prep.cfg
-    if steps is None and minutes is None:
+    if steps is None:
         steps = cfg.max_steps
     log = log or (lambda s: tqdm.write(s))
     t_start = time.perf_counter()
@@ -439,8 +440,10 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
         if resume and mngr.latest_step() is not None:
             try:
                 state, old = restore_checkpoint(mngr, state)
-                if json.dumps(old.get("config"), sort_keys=True) != json.dumps(
-                        meta["config"], sort_keys=True):
+                # a longer run of the same map continues (only the step budget differs)
+                same = {**(old.get("config") or {}), "max_steps": cfg.max_steps}
+                if json.dumps(same, sort_keys=True) != json.dumps(meta["config"],
+                                                                   sort_keys=True):
                     raise VrsError("checkpoint was trained with a different config; use "
                                    "another output folder", Path(out_dir) / "checkpoints")
                 if old.get("scene") != meta["scene"]:
@@ -469,38 +472,46 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     steps_after_compile = start_step
     held = math.nan
     try:
-        while int(state.step) < target and time.perf_counter() < deadline:
+        s = start_step
+        while s < target and time.perf_counter() < deadline:
             state, metrics = step_fn(state, cl, bank)
-            m = jax.device_get(metrics)
-            s = int(state.step)
+            s += 1  # counted on the host: no device sync per step
             if t_loop is None:  # the first step includes compilation
+                jax.block_until_ready(state.step)
                 t_loop = time.perf_counter()
                 compile_s = t_loop - t_start
                 steps_after_compile = s
+            read = (s % cfg.log_every == 0 or s % cfg.checkpoint_every == 0 or s >= target
+                    or time.perf_counter() >= deadline
+                    or (eval_fn is not None and s % cfg.eval_every == 0))
+            if not read:
+                continue
+            t_aside = time.perf_counter()
+            m = jax.device_get(metrics)  # the only host read: every log_every steps
             if not np.all(m["finite"]):
                 bad = int(np.flatnonzero(~m["finite"])[0])
                 where = (f"last good checkpoint: step {last_good} in "
                          f"{Path(out_dir) / 'checkpoints'}" if last_good is not None
                          else "no checkpoint was saved yet")
                 raise TrainingDiverged(
-                    f"training diverged at step {s} (cluster {bad}: loss "
+                    f"training diverged by step {s} (cluster {bad}: loss "
                     f"{float(m['loss'][bad])}, parameters finite: no); stopped; {where}; "
                     f"try a lower lr_init")
             rec = {"step": s, "loss": float(np.mean(m["loss"])),
                    "psnr": float(np.mean(m["psnr"])), "time": time.perf_counter() - t_start}
-            t_aside = time.perf_counter()
             if eval_fn is not None and (s % cfg.eval_every == 0):
                 held = float(eval_fn(state.params, cl, eval_batch))
                 rec["heldout_psnr"] = held
                 log(f"step {s}: train psnr {rec['psnr']:.2f} held-out psnr {held:.2f}")
             history.append(rec)
-            bar.update(1)
+            bar.update(s - bar.n)
             bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
                             val=f"{held:.2f}", refresh=False)
             if mngr is not None and s % cfg.checkpoint_every == 0:
                 save_checkpoint(mngr, state, meta)
                 last_good = s
             aside_s += time.perf_counter() - t_aside
+        jax.block_until_ready(state)
         t_end = time.perf_counter()
         done = int(state.step)
         if mngr is not None and done != last_good and done > start_step:

@@ -2,10 +2,9 @@
 
 The same :func:`vrs_jax.features.patches.patch_grid` that reads real patches gives the sample
 positions, so a rendered patch and a real patch describe the same piece of the scene
-(DESIGN.md section 2). Each sample becomes one mip-NeRF cone whose radius matches the sample
-spacing: with directions scaled to unit camera depth (``K^-1 [u, v, 1]``), a pixel spacing of
-``s`` pixels is ``s / f`` in normalised coordinates and mip-NeRF's radius is that width times
-``2 / sqrt(12)`` (the disc with the variance of a pixel-wide square).
+(docs/design.md, section 2). Each sample becomes one mip-NeRF cone whose radius matches the sample
+spacing (:func:`vrs_jax.geometry.cone_radius`, the same definition NeRF training uses for
+pixels). This module sits below both ``nerf`` (keypoint-patch training rays) and ``localize``.
 
 Pure functions; vmap over images and keypoints is free.
 """
@@ -21,10 +20,6 @@ from vrs_jax import geometry
 from vrs_jax.features.patches import PatchConfig, patch_grid
 
 Array = Any
-
-# mip-NeRF: a square pixel of side w has the second moment of a disc of radius w * 2/sqrt(12).
-PIXEL_TO_RADIUS = 2.0 / math.sqrt(12.0)
-
 
 class PatchRays(NamedTuple):
     """Cone rays of K patches of P x P samples (all world frame).
@@ -55,8 +50,7 @@ def patch_rays(kp: Array, K: Array, R: Array, t: Array, patch_cfg: PatchConfig,
     kshape = pos.shape[:-1]
     flat = pos.reshape(-1, 2)
     o, d = geometry.pixel_rays(K, R, t, flat, dist)
-    focal = 0.5 * (K[0, 0] + K[1, 1])
-    radius = foot / focal * PIXEL_TO_RADIUS  # [Kp]
+    radius = geometry.cone_radius(K, foot)  # [Kp]
     radii = jnp.broadcast_to(radius[:, None, None], kshape)
     return PatchRays(o.reshape(*kshape, 3), d.reshape(*kshape, 3), radii, pos)
 

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax import geometry as g
+from vrs_jax.features import rays
 from vrs_jax.features.patches import PatchConfig, patch_grid
-from vrs_jax.localize import rays
 
 rng = np.random.default_rng(3)
 

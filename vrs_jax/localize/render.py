@@ -1,0 +1,107 @@
+"""Rendering the reference keypoints' patches with the map's NeRF (render mode).
+
+Each retrieved reference image's 3D-linked keypoints are cast as patch cones
+(:func:`vrs_jax.features.rays.patch_rays`, the grid that reads real patches) and rendered with
+the NeRF of the image's cluster, either depth-guided (one pass of ``narrow_samples`` around the
+keypoint's 3D point) or with the map's full coarse + fine sampling. Pure and jittable.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from vrs_jax import geometry
+from vrs_jax.features import rays as rays_mod
+from vrs_jax.features.descriptor import rgb_to_gray
+from vrs_jax.features.patches import PatchConfig
+from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.maps import Map
+from vrs_jax.nerf.model import Field, render_rays, render_rays_narrow, select_field
+
+Array = Any
+
+
+def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Array,
+                n_valid: Array, nerf_cfg, cfg: LocalizeConfig) -> Array:
+    """Render N rays [N, ...] in chunks, skipping chunks past ``n_valid`` -> rgb [N, 3]."""
+    n = o.shape[0]
+    chunk = min(cfg.render_chunk, n)
+    n_chunks = -(-n // chunk)
+    pad = n_chunks * chunk - n
+
+    def padded(x, fill=0.0):
+        return jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)]).reshape(
+            (n_chunks, chunk) + x.shape[1:])
+
+    # padded rays: a harmless unit direction with a valid interval
+    xs = (jnp.arange(n_chunks) * chunk, padded(o), padded(d, 1.0), padded(r, 1e-3),
+          padded(near, 1.0), padded(far, 2.0))
+
+    def render_chunk(args):
+        start, oc, dc, rc, nc, fc = args
+
+        def go(_):
+            if cfg.depth_guided:
+                out = render_rays_narrow(field, oc, dc, rc, nc, fc, None, nerf_cfg,
+                                         cfg.narrow_samples)
+            else:
+                out = render_rays(field, oc, dc, rc, nc, fc, None, nerf_cfg)
+            return out["rgb"]
+
+        return jax.lax.cond(start < n_valid, go, lambda _: jnp.zeros((chunk, 3), oc.dtype), None)
+
+    rgb = jax.lax.map(render_chunk, xs)
+    return rgb.reshape(n_chunks * chunk, 3)[:n]
+
+
+def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
+    """Rendered grey patches [K_max, P, P] of reference image ``i`` with its cluster's NeRF."""
+    egm, ilm = m.egm, m.ilm
+    P = patches.size
+    kp, mask = egm.keypoints[i], egm.kp_mask[i]
+    field = select_field(ilm.fields, ilm.image_cluster[i])
+    pr = rays_mod.patch_rays(kp, egm.K[i], egm.R[i], egm.t[i], patches, egm.dist[i])
+    shape = (kp.shape[0], P, P)
+    if cfg.depth_guided:
+        z = rays_mod.keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
+        near, far = rays_mod.narrow_interval(z, cfg.depth_margin, shape)
+    else:
+        near = jnp.broadcast_to(ilm.near[i], shape)
+        far = jnp.broadcast_to(ilm.far[i], shape)
+    n_kp = jnp.sum(mask)
+    if patches.mode == "literal":
+        # overlapping axis-aligned patches share whole pixels: render each distinct one once
+        pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
+        o, d = geometry.pixel_rays(egm.K[i], egm.R[i], egm.t[i], pixels, egm.dist[i])
+        r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
+        near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near.reshape(-1))
+        far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far.reshape(-1))
+        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, ilm.config, cfg)
+        rgb = rgb_u[inverse.reshape(-1)].reshape(shape + (3,))
+    else:
+        flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+        rgb = render_flat(field, flat(pr.origins), flat(pr.directions), flat(pr.radii),
+                          flat(near), flat(far), n_kp * P * P, ilm.config, cfg)
+        rgb = rgb.reshape(shape + (3,))
+    return rgb_to_gray(rgb)
+
+
+def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
+    """Mean patch rays rendered per query (valid keypoints of k reference images x P^2)."""
+    if cfg.source != "render":
+        return 0.0
+    size = (cfg.patches or m.config.features.patches).size
+    per_image = np.asarray(m.egm.kp_mask).sum(axis=1).mean() * size ** 2
+    return float(min(cfg.top_k, m.egm.num_images) * per_image)
+
+
+def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:
+    """MLP evaluations per rendered ray (depth-guided: one pass; full: coarse + fine)."""
+    if cfg.depth_guided:
+        return cfg.narrow_samples
+    c = m.config.nerf
+    return c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine

@@ -1,0 +1,70 @@
+"""``localize(map, query, cfg)``: the stages of :mod:`stages` chained, fused or timed.
+
+``localize`` is one jitted function per map shape and config (all queries of a map share one
+compilation) and vmappable over a batch of queries. ``localize_timed`` runs the very same stage
+functions one jit each, reporting wall time per stage; ``run_stages`` stops after a named stage
+(the figures use it). All three are the one loop below over :data:`stages.STAGES`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+
+from vrs_jax.localize import stages as st
+from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.localize.query import Query
+from vrs_jax.localize.stages import LocalizeResult
+from vrs_jax.maps import Map
+
+
+def run_stages(m: Map, q: Query, cfg: LocalizeConfig, until: str | None = None,
+               jitted: dict | None = None, times: dict | None = None) -> st.State:
+    """Run the config's stages in order (up to and including ``until``); returns the state.
+
+    ``jitted``: stage name -> compiled stage to call instead (``localize_timed``); ``times``:
+    filled with wall seconds per stage (each stage's outputs waited for).
+    """
+    st.check(m, cfg)
+    s: st.State = {}
+    for name, fn in st.stages_for(cfg):
+        f = jitted[name] if jitted else fn
+        t0 = time.perf_counter()
+        out = f(m, q, cfg, s)
+        if times is not None:
+            jax.block_until_ready(out)
+            times[name] = time.perf_counter() - t0
+        s.update(out)
+        if name == until:
+            break
+    return s
+
+
+def _localize(m: Map, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
+    return run_stages(m, q, cfg)["result"]
+
+
+localize = jax.jit(_localize, static_argnames=("cfg",))
+localize.__doc__ = """Localize one query: ``localize(map, query, cfg)`` (jitted; cfg static).
+
+Args:
+  map: a :class:`vrs_jax.maps.Map` (``maps.load_map``).
+  query: a :class:`~vrs_jax.localize.query.Query` (``prepare_query(map, image, K, dist, cfg)``).
+  cfg: :class:`~vrs_jax.localize.config.LocalizeConfig` (``cfg.source``: "render" or "real").
+Returns:
+  LocalizeResult. Compiled once per (map shapes, cfg); ``jax.vmap(localize, (None, 0, None))``
+  localizes a stacked batch of queries.
+"""
+
+_JITTED = {name: jax.jit(fn, static_argnames=("cfg",)) for name, fn in st.STAGES}
+
+
+def localize_timed(m: Map, q: Query, cfg: LocalizeConfig
+                   ) -> tuple[LocalizeResult, dict[str, float]]:
+    """The same stages as :func:`localize`, one jit each, with wall seconds per stage
+    (:data:`stages.STAGE_NAMES`; 0 for a stage the config skips). The first call of each stage
+    includes its compilation: time a warm-up query first."""
+    times = dict.fromkeys(st.STAGE_NAMES, 0.0)
+    s = run_stages(m, q, cfg, jitted=_JITTED, times=times)
+    return s["result"], times

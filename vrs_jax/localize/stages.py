@@ -1,0 +1,151 @@
+"""The localization stages, each defined once as a named pure function.
+
+Data flow for one query (docs/design.md, section 1)::
+
+    retrieval   top-k reference images by global descriptor            idx [k]
+    render      their 3D-linked keypoints' patches with the NeRF        gray [k, K_max, P, P]
+    describe    rendered patches -> descriptors (real mode: the map's)  desc [k, K_max, D]
+    matching    query vs each candidate (mutual NN + ratio), lifted to
+                3D points, each (query keypoint, 3D point) pair once    uv, X, ok [k * Kq]
+    ransac      OpenCV MAGSAC seed                                      R0, t0, inliers
+    refinement  optimistix LM on the seed's inliers; fallback to the
+                top-1 reference pose when PnP fails, flagged            LocalizeResult
+
+Every stage is ``fn(map, query, cfg, state) -> dict`` of new state entries; :mod:`run`
+chains them fused under one jit (``localize``) or one jit per stage with timing
+(``localize_timed``); the figures stop after ``matching``. In real-patch mode the render stage
+is skipped and describe reads the map's stored real-patch descriptors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from vrs_jax.egm.retrieval import topk
+from vrs_jax.errors import VrsError
+from vrs_jax.features.descriptor import describe as describe_patches
+from vrs_jax.features.matching import match
+from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.localize.pnp import ransac_pnp, refine_seed
+from vrs_jax.localize.query import Query
+from vrs_jax.localize.render import render_reference
+from vrs_jax.maps import Map
+
+Array = Any
+State = dict[str, Any]
+
+
+@flax.struct.dataclass
+class LocalizeResult:
+    """Outcome of one query (batched under vmap).
+
+    R, t: [3, 3], [3] world-to-camera pose (the top-1 reference pose when ``fallback``).
+    success: [] bool PnP succeeded; fallback: [] bool the pose is the retrieval fallback.
+    n_inliers: [] int32 distinct 2D-3D inliers; n_matches: [] int32 distinct 2D-3D
+    correspondences fed to RANSAC. retrieved: [k] int32 reference indices, best first.
+    """
+
+    R: Array
+    t: Array
+    success: Array
+    fallback: Array
+    n_inliers: Array
+    n_matches: Array
+    retrieved: Array
+
+
+def check(m: Map, cfg: LocalizeConfig) -> None:
+    """Raise VrsError if the map cannot serve this config (static: checked at trace time)."""
+    if cfg.source == "render" and m.ilm is None:
+        raise VrsError("render mode needs the map's NeRF; this map has none trained yet")
+    if cfg.source == "real" and not m.has_descriptors:
+        raise VrsError("real-patch mode needs the map's real-patch descriptors "
+                       "(descriptors.npz); load the map with descriptors=True")
+
+
+def retrieval(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """Top-k reference indices [k] int32 by global-descriptor similarity."""
+    idx, _ = topk(q.global_desc, m.egm.global_desc, min(cfg.top_k, m.egm.num_images))
+    return {"idx": idx}
+
+
+def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """Rendered grey patches [k, K_max, P, P] of the retrieved images' map keypoints."""
+    patches = cfg.patches or m.config.features.patches
+    return {"gray": jax.lax.map(lambda i: render_reference(m, i, patches, cfg), s["idx"])}
+
+
+def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """Descriptors [k, K_max, D] and mask [k, K_max] of the candidates' keypoints."""
+    idx = s["idx"]
+    if cfg.source == "real":
+        desc = m.egm.local_desc[idx]
+    else:
+        desc = describe_patches(s["gray"], m.config.features.descriptor)
+    return {"desc": desc, "desc_mask": m.egm.kp_mask[idx]}
+
+
+def unique_pairs(qi: Array, pid: Array, ok: Array) -> Array:
+    """[M] bool: ``ok`` with every repeated (qi, pid) pair but its first occurrence removed.
+
+    Args: qi [M] query keypoint index; pid [M] 3D point index; ok [M] valid entries.
+    """
+    order = jnp.lexsort((pid, qi, ~ok))  # valid first, then by (qi, pid)
+    q_s, p_s, ok_s = qi[order], pid[order], ok[order]
+    same = jnp.concatenate([jnp.zeros(1, bool), (q_s[1:] == q_s[:-1]) & (p_s[1:] == p_s[:-1])
+                            & ok_s[:-1]])
+    return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
+
+
+def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """Match the query to each candidate and lift to distinct 2D-3D correspondences:
+    uv [k * Kq, 2], X [k * Kq, 3], ok [k * Kq] (each (query keypoint, 3D point) pair once)."""
+    def one(d, dm):
+        j, valid, _ = match(q.desc, q.mask, d, dm, cfg.ratio, cfg.mutual)
+        return j, valid
+
+    idx = s["idx"]
+    j, valid = jax.vmap(one)(s["desc"], s["desc_mask"])  # [k, Kq]
+    pid = jnp.take_along_axis(m.egm.point_idx[idx], j, axis=1)  # [k, Kq]
+    ok = valid & (pid >= 0)
+    X = m.egm.points3d[jnp.maximum(pid, 0)]  # [k, Kq, 3]
+    uv = jnp.broadcast_to(q.points2d[None], X.shape[:2] + (2,))
+    qi = jnp.broadcast_to(jnp.arange(j.shape[1])[None], j.shape)
+    ok = unique_pairs(qi.reshape(-1), pid.reshape(-1), ok.reshape(-1))
+    return {"uv": uv.reshape(-1, 2), "X": X.reshape(-1, 3), "ok": ok}
+
+
+def ransac(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """OpenCV RANSAC seed: R0 [3, 3], t0 [3], seed inliers [M], ok_seed []."""
+    R0, t0, inl, ok = ransac_pnp(s["uv"], s["X"], s["ok"], q.K, cfg.pnp)
+    return {"R0": R0, "t0": t0, "inl0": inl, "ok_seed": ok}
+
+
+def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """LM refinement of the seed, then the fallback to the top-1 reference pose."""
+    pose = refine_seed(s["R0"], s["t0"], s["inl0"], s["ok_seed"], s["uv"], s["X"], s["ok"],
+                       q.K, cfg.pnp)
+    top = s["idx"][0]
+    ok = pose.success
+    res = LocalizeResult(R=jnp.where(ok, pose.R, m.egm.R[top]),
+                         t=jnp.where(ok, pose.t, m.egm.t[top]), success=ok, fallback=~ok,
+                         n_inliers=pose.n_inliers,
+                         n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"])
+    return {"result": res}
+
+
+Stage = Callable[[Map, Query, LocalizeConfig, State], State]
+STAGES: tuple[tuple[str, Stage], ...] = (
+    ("retrieval", retrieval), ("render", render), ("describe", describe),
+    ("matching", matching), ("ransac", ransac), ("refinement", refinement))
+STAGE_NAMES = tuple(name for name, _ in STAGES)
+
+
+def stages_for(cfg: LocalizeConfig) -> tuple[tuple[str, Stage], ...]:
+    """The stages a config runs (real-patch mode renders nothing)."""
+    return tuple((n, f) for n, f in STAGES if not (n == "render" and cfg.source == "real"))

@@ -1,0 +1,130 @@
+"""Build a map from a dataset: the EGM, then the ILM trained on the reference images.
+
+Resumable, hloc style: re-running skips what is finished and continues NeRF training from the
+last orbax checkpoint. A folder is only ever extended with the same configuration and the same
+split; the one change accepted is a longer training run (``nerf.max_steps`` raised), which
+continues from the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vrs_jax import configio, fileio
+from vrs_jax.data.scene import Scene
+from vrs_jax.egm import build as egm_build
+from vrs_jax.errors import VrsError
+from vrs_jax.maps import map as map_io
+from vrs_jax.maps.config import MapConfig
+from vrs_jax.maps.map import Map, MapSource
+from vrs_jax.nerf import train as nerf_train
+
+log_ = logging.getLogger("vrs_jax")
+
+
+def scene_source(scene: Scene, options: dict[str, Any] | None = None) -> MapSource:
+    """The MapSource of a scene: its format, root, reader options and held-out queries."""
+    return MapSource(format=scene.format, root=str(scene.root),
+                     options=tuple(sorted((str(k), str(v)) for k, v in (options or {}).items())),
+                     query_names=tuple(scene.queries().names))
+
+
+def _existing(out: Path, cfg: MapConfig, source: MapSource) -> tuple[Map | None, dict]:
+    """The map already in ``out`` (if any) after checking it may be extended."""
+    if not (out / map_io.META).is_file():
+        if out.exists() and any(p.name != "sfm" for p in out.iterdir()):
+            raise VrsError("folder exists and is not a vrs-jax map; choose an empty --out", out)
+        return None, {}
+    meta = map_io.read_meta(out)
+    old = load_partial(out)
+    if old.source.format != source.format or old.source.query_names != source.query_names:
+        raise VrsError(f"this map folder was built from another dataset or split "
+                       f"({old.source.format} at {old.source.root}); use another --out", out)
+    if dataclasses.replace(old.config, nerf=dataclasses.replace(
+            old.config.nerf, max_steps=cfg.nerf.max_steps)) != cfg:
+        raise VrsError(f"this map folder was built with config {old.config.name!r} and other "
+                       "settings; use another --out", out / map_io.META)
+    if cfg.nerf.max_steps < old.config.nerf.max_steps:
+        raise VrsError(f"the map is trained for {old.config.nerf.max_steps} steps; --steps can "
+                       "only extend it", out / map_io.META)
+    return old, meta.get("stats", {})
+
+
+def load_partial(folder: Path) -> Map:
+    """A map folder as it stands (the NeRF may be missing), with its descriptors."""
+    return map_io.load_map(folder, descriptors=True, require_ilm=False)
+
+
+def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool = True,
+              minutes: float | None = None, source_options: dict[str, Any] | None = None,
+              log: Callable[[str], None] = print, train_nerf: bool = True) -> Path:
+    """EGM (with real-patch descriptors), then the ILM; resumable.
+
+    Args:
+      scene: the dataset; its reference images (``~is_query``) are mapped, its queries are
+        recorded as the map's held-out split.
+      out_dir: the map folder (created; see :mod:`vrs_jax.maps.map`).
+      cfg: the MapConfig (stored by value in the map).
+      minutes: optional wall-clock cap on this run's NeRF training; a re-run continues.
+      source_options: the reader options that produced ``scene`` (recorded in the map).
+      train_nerf: False stops after the EGM (a map without NeRF; a later call continues).
+    Returns:
+      the folder.
+    """
+    out = Path(out_dir)
+    source = scene_source(scene, source_options)
+    m, stats = _existing(out, cfg, source)
+    fileio.check_writable(out)
+    if m is None:
+        log(f"[1/3] EGM: features, pairs, triangulation ({len(scene.references())} references)")
+        egm, egm_stats = egm_build.build_egm(scene, cfg.egm, progress=progress)
+        log(egm_build.format_stats(egm_stats))
+        stats = {"egm": egm_stats}
+        m = Map(egm=egm, ilm=None, config=cfg, source=source)
+        map_io.save_map(m, out, stats)
+    else:
+        log("[1/3] EGM: already built, skipping")
+    if not train_nerf:
+        return out
+    trained = m.ilm is not None and m.ilm.config == cfg.nerf
+    if not trained:
+        ncfg = cfg.nerf
+        log(f"[2/3] ILM: {ncfg.n_clusters} Mip-NeRF cluster(s), config {ncfg.name}, "
+            f"{ncfg.max_steps} steps" + (f" (this run: at most {minutes:g} min)" if minutes
+                                         else ""))
+        refs = scene.references()
+        prep = nerf_train.prepare(refs, ncfg, points3d=np.asarray(m.egm.points3d),
+                                  patch_keypoints=(m.egm.keypoints, m.egm.kp_mask,
+                                                   cfg.features.patches))
+        res = nerf_train.train(prep, out / "nerf", minutes=minutes, progress=progress)
+        done = int(res.state.step)
+        stats["ilm"] = {"steps": done, "steps_per_s": res.steps_per_s, "train_s": res.seconds,
+                        "history": res.history[-5:]}
+        if done < ncfg.max_steps:
+            # map.json keeps describing the last complete state; the checkpoint is ahead
+            log(f"NeRF stopped at step {done} of {ncfg.max_steps} (time cap); re-run the same "
+                "command to continue")
+            return out
+        m = m.replace(ilm=res.ilm, config=cfg)
+        map_io.save_map(m, out, stats)
+    else:
+        log("[2/3] ILM: already trained, skipping")
+    stats["map_bytes"] = map_io.map_bytes(out)
+    map_io.save_map(m, out, stats)
+    return out
+
+
+def describe(folder: str | Path) -> str:
+    """One line about a map folder: config, images, sizes of its two variants."""
+    meta = map_io.read_meta(folder)
+    b = map_io.map_bytes(folder)
+    cfg = configio.from_dict(MapConfig, meta["config"], Path(folder) / map_io.META)
+    return (f"map {folder}: config {cfg.name}, {len(meta['names'])} reference images; VRS map "
+            f"(rendered patches) {b['vrs'] / 1e6:.2f} MB (EGM {b['egm'] / 1e6:.2f} + NeRF "
+            f"{b['ilm'] / 1e6:.2f}), real-patch map {b['real'] / 1e6:.2f} MB")

@@ -1,0 +1,251 @@
+"""The Map pytree and its folder on disk (saved and loaded as one unit).
+
+A map folder holds::
+
+    MAPDIR/map.json         kind, format version, the MapConfig's VALUES, where the map came
+                            from (dataset format, root, reader options, the query images held
+                            out), image names, a SHA-256 and byte count per data file, stats
+    MAPDIR/egm.npz          the EGM arrays (3D points, poses, intrinsics, keypoints linked to
+                            points, global descriptors and vocabulary); no local descriptors
+    MAPDIR/descriptors.npz  the real-patch descriptors of the EGM keypoints (float16, as hloc
+                            stores them): what the real-patch mode matches against; the VRS
+                            map (rendered patches) never reads it
+    MAPDIR/ilm.npz          the NeRFs, stacked per cluster, with each image's cluster
+    MAPDIR/nerf/            orbax training checkpoints (resume only; not part of the map)
+
+Loading checks everything before returning: kind, format version, every config field (an
+unknown, missing or ill-typed field fails), each data file's checksum, the arrays' shapes
+against each other and the config, and the ILM against the EGM (same images, same NeRF
+config). Anything off is one :class:`~vrs_jax.errors.VrsError` line naming the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import flax.struct
+import numpy as np
+
+from vrs_jax import configio, fileio
+from vrs_jax.egm import map as egm_map
+from vrs_jax.egm.map import EGM
+from vrs_jax.errors import VrsError
+from vrs_jax.maps.config import MapConfig
+from vrs_jax.nerf import ilm as ilm_lib
+from vrs_jax.nerf.ilm import ILM
+
+KIND = "vrs_jax.map"
+FORMAT_VERSION = 2
+META = "map.json"
+EGM_FILE = "egm.npz"
+DESC_FILE = "descriptors.npz"
+ILM_FILE = "ilm.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class MapSource:
+    """Where a map's images came from, and its split (the held-out query images).
+
+    format: dataset format (``vrs_jax.data.readers``); root: dataset folder; options: the
+    reader options as (key, value-as-text) pairs; query_names: images held out as queries.
+    """
+
+    format: str = ""
+    root: str = ""
+    options: tuple[tuple[str, str], ...] = ()
+    query_names: tuple[str, ...] = ()
+
+
+@flax.struct.dataclass
+class Map:
+    """One map: EGM + ILM + its configuration (by value) + where it came from.
+
+    egm: the explicit geometric map; ``egm.local_desc`` [N, K_max, D] holds the real-patch
+      descriptors when the map keeps them (real-patch mode), else None.
+    ilm: the stacked per-cluster NeRFs (None only while a map is being built); its
+      ``image_cluster`` [N] is the one record of each reference image's cluster.
+    config: :class:`~vrs_jax.maps.config.MapConfig` (static).
+    source: :class:`MapSource` (static).
+    """
+
+    egm: EGM
+    ilm: ILM | None
+    config: MapConfig = flax.struct.field(pytree_node=False)
+    source: MapSource = flax.struct.field(pytree_node=False, default=MapSource())
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.egm.names
+
+    @property
+    def has_descriptors(self) -> bool:
+        """Whether real-patch mode can run (the map keeps real-patch descriptors)."""
+        return self.egm.local_desc is not None
+
+    @property
+    def cluster(self):
+        """[N] int32 NeRF cluster of each reference image."""
+        if self.ilm is None:
+            raise VrsError("this map has no trained NeRF yet")
+        return self.ilm.image_cluster
+
+    def without_descriptors(self) -> Map:
+        """The VRS map proper: the same map without the real-patch descriptors."""
+        return self.replace(egm=self.egm.without_local_descriptors())
+
+
+# ----------------------------------------------------------------------------- save
+
+
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def save_map(m: Map, folder: str | Path, stats: dict | None = None) -> Path:
+    """Write ``m`` into ``folder`` (data files first, each atomically; ``map.json`` last, so a
+    folder whose ``map.json`` is readable is complete). Returns the folder."""
+    d = fileio.check_writable(folder)
+    blobs = {EGM_FILE: _npz(egm_map.to_arrays(m.egm))}
+    if m.has_descriptors:
+        blobs[DESC_FILE] = _npz(egm_map.descriptor_arrays(m.egm))
+    if m.ilm is not None:
+        if tuple(m.ilm.image_names) != tuple(m.egm.names):
+            raise VrsError("the NeRF map and the EGM list different reference images", d)
+        if m.ilm.config != m.config.nerf:
+            raise VrsError("the NeRF was trained with another config than the map's", d)
+        blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm)
+    for name, data in blobs.items():
+        fileio.write_bytes(d / name, data)
+    for name in {DESC_FILE, ILM_FILE} - set(blobs):
+        (d / name).unlink(missing_ok=True)  # stale files of an earlier state of this map
+    meta = {
+        "kind": KIND,
+        "format_version": FORMAT_VERSION,
+        "config": configio.to_dict(m.config),
+        "source": configio.to_dict(m.source),
+        "names": list(m.egm.names),
+        "k_max": m.egm.k_max,
+        "files": {name: {"sha256": fileio.sha256(b), "bytes": len(b)}
+                  for name, b in blobs.items()},
+        "stats": stats or {},
+    }
+    fileio.write_json(d / META, meta)
+    return d
+
+
+# ----------------------------------------------------------------------------- load
+
+
+def read_meta(folder: str | Path) -> dict[str, Any]:
+    """``map.json`` of a map folder, checked for kind and format version."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise VrsError("map folder not found" if not d.exists() else "map path is not a folder",
+                       d)
+    p = d / META
+    if not p.is_file():
+        raise VrsError("not a vrs-jax map folder (no map.json)", d)
+    meta = fileio.read_json(p, "map metadata")
+    if not isinstance(meta, dict) or meta.get("kind") != KIND:
+        raise VrsError("not a vrs-jax map", p)
+    v = meta.get("format_version")
+    if v != FORMAT_VERSION:
+        raise VrsError(f"map format version {v}; this vrs-jax reads version {FORMAT_VERSION}: "
+                       "rebuild the map", p)
+    for key in ("config", "source", "names", "k_max", "files"):
+        if key not in meta:
+            raise VrsError(f"map metadata lacks {key!r}", p)
+    return meta
+
+
+def _read_checked(d: Path, name: str, meta: dict) -> bytes:
+    p = d / name
+    rec = meta["files"][name]
+    if not p.is_file():
+        raise VrsError("map file missing", p)
+    raw = p.read_bytes()
+    if len(raw) != rec.get("bytes") or fileio.sha256(raw) != rec.get("sha256"):
+        raise VrsError("map file does not match map.json (corrupt, truncated or from another "
+                       "map)", p)
+    return raw
+
+
+def _npz_arrays(raw: bytes, p: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise VrsError(f"corrupt map arrays: {e}", p) from None
+
+
+def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = True) -> Map:
+    """Read and validate a map folder written by :func:`save_map`.
+
+    Args:
+      descriptors: also load the real-patch descriptors when the map has them.
+      require_ilm: fail unless the NeRF is trained (a map still being built has none).
+    """
+    d = Path(folder)
+    meta = read_meta(d)
+    p = d / META
+    cfg = configio.from_dict(MapConfig, meta["config"], p)
+    source = configio.from_dict(MapSource, meta["source"], p)
+    names = tuple(meta["names"])
+    files = meta["files"]
+    if EGM_FILE not in files:
+        raise VrsError("map metadata lists no EGM", p)
+    arrays = _npz_arrays(_read_checked(d, EGM_FILE, meta), d / EGM_FILE)
+    desc = None
+    if descriptors and DESC_FILE in files:
+        desc = _npz_arrays(_read_checked(d, DESC_FILE, meta), d / DESC_FILE).get("local_desc")
+        if desc is None or desc.ndim != 2 or desc.shape[1] != cfg.features.descriptor.dim:
+            raise VrsError("real-patch descriptors do not match the map's descriptor config",
+                           d / DESC_FILE)
+    egm = egm_map.from_arrays(arrays, names, int(meta["k_max"]), d / EGM_FILE, desc)
+    ilm = None
+    if ILM_FILE in files:
+        ilm = ilm_lib.from_bytes(_read_checked(d, ILM_FILE, meta), d / ILM_FILE)
+        if tuple(ilm.image_names) != names:
+            raise VrsError("the NeRF map lists other reference images than the EGM", d / ILM_FILE)
+        if ilm.config != cfg.nerf:
+            raise VrsError("the NeRF was trained with another config than map.json records",
+                           d / ILM_FILE)
+    elif require_ilm:
+        raise VrsError("the map has no trained NeRF yet: finish its training run", d)
+    return Map(egm=egm, ilm=ilm, config=cfg, source=source)
+
+
+def read_stats(folder: str | Path) -> dict[str, Any]:
+    """The build statistics recorded in a map's ``map.json``."""
+    return read_meta(folder).get("stats", {})
+
+
+# ----------------------------------------------------------------------------- size
+
+
+def map_bytes(folder: str | Path) -> dict[str, Any]:
+    """Bytes on disk of what localization loads, by map variant and part.
+
+    Returns dict with ``vrs`` (map.json + egm.npz + ilm.npz: rendered-patch mode), ``real``
+    (map.json + egm.npz + descriptors.npz: real-patch mode), ``metadata``, ``egm``,
+    ``ilm``, ``descriptors`` totals, and ``egm_parts`` (egm.npz by part, see
+    :data:`vrs_jax.egm.map.PARTS`). Also ``descriptors_uint8``: what the descriptors would take
+    at one byte per dimension (as COLMAP stores SIFT), for the comparison.
+    """
+    d = Path(folder)
+    meta = read_meta(d)
+    size = {name: rec["bytes"] for name, rec in meta["files"].items()}
+    js = (d / META).stat().st_size
+    egm_b, ilm_b, desc_b = size.get(EGM_FILE, 0), size.get(ILM_FILE, 0), size.get(DESC_FILE, 0)
+    n_kp = int(np.sum(_npz_arrays(_read_checked(d, EGM_FILE, meta), d / EGM_FILE)["kp_counts"]))
+    dim = configio.from_dict(MapConfig, meta["config"], d / META).features.descriptor.dim
+    return {"vrs": js + egm_b + ilm_b, "real": js + egm_b + desc_b, "metadata": js,
+            "egm": egm_b, "ilm": ilm_b, "descriptors": desc_b,
+            "descriptors_uint8": n_kp * dim,
+            "egm_parts": egm_map.npz_parts((d / EGM_FILE).read_bytes())}
