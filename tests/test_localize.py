@@ -92,8 +92,8 @@ def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene
     for key in ("n_queries", "median_t_cm", "median_R_deg", "recall", "map_bytes", "timing_s",
                 "rays_per_query", "nerf_evals_per_query", "mode", "config"):
         assert key in s
-    assert set(s["recall"]) == {"1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg",
-                                "50cm_5deg", "500cm_10deg"}
+    assert set(s["recall"]) == {"1cm_1deg", "2cm_2deg", "3cm_3deg", "5cm_5deg", "10cm_5deg",
+                                "25cm_2deg", "50cm_5deg", "500cm_10deg"}
     assert set(s["map_bytes"]) == {"egm", "ilm", "total"}
     # the written poses are the localized ones: errors agree with the summary's median
     dt = [geometry.pose_errors(*res[n], queries.R[i], queries.t[i])[0]
