@@ -24,9 +24,9 @@ from pathlib import Path
 
 from vrs_jax.data.readers import FORMATS, load_scene
 from vrs_jax.egm import build, sfm
+from vrs_jax.egm.colmap import export_colmap
 from vrs_jax.egm.map import (
     JSON_NAME,
-    export_colmap,
     load_egm,
     map_bytes,
     read_metadata,
