@@ -34,14 +34,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import hashlib
 import json
 import math
 import os
-import platform
 import shlex
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -50,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from vrs_jax import runrecord
 from vrs_jax.errors import VrsError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -400,76 +398,16 @@ def time_calls(fn, *args, repeats: int = 3, budget_s: float = 2.0) -> tuple[floa
 
 
 def now() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-
-
-def _version(dist: str) -> str | None:
-    from importlib import metadata
-
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return None
-
-
-def _git() -> dict[str, Any]:
-    def run(*cmd):
-        try:
-            r = subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True,
-                               timeout=10)
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return r.stdout.strip() if r.returncode == 0 else None
-
-    status = run("status", "--porcelain", "--untracked-files=no")
-    return {"commit": run("rev-parse", "HEAD"),
-            "dirty": None if status is None else bool(status)}
+    return runrecord.utc_now()
 
 
 def environment() -> dict[str, Any]:
-    """Machine, device, library versions and code version, for every benchmark JSON."""
-    import jax
-
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = int(line.split()[1]) * 1024
-                break
-    except OSError:
-        pass
-    try:
-        load = list(os.getloadavg())
-    except OSError:
-        load = None
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:
-        usable = os.cpu_count()
-    return {
-        "time_utc": now(),
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpu": cpu, "cpu_count": os.cpu_count(), "cpus_usable": usable,
-                    "memory_bytes": mem, "load_avg_at_start": load},
-        "device": {"backend": jax.default_backend(),
-                   "devices": [f"{d.platform}:{d.device_kind}" for d in jax.devices()]},
-        "versions": {name: _version(dist) for name, dist in (
-            ("jax", "jax"), ("jaxlib", "jaxlib"), ("flax", "flax"), ("optax", "optax"),
-            ("optimistix", "optimistix"), ("orbax-checkpoint", "orbax-checkpoint"),
-            ("numpy", "numpy"), ("opencv", "opencv-python-headless"),
-            ("pycolmap", "pycolmap"), ("matplotlib", "matplotlib"))},
-        "code": {**_git(), "vrs_jax_source_sha256": source_hash()},
-        "env": {k: os.environ[k] for k in ("XLA_FLAGS", "JAX_PLATFORMS", "OMP_NUM_THREADS")
-                if k in os.environ},
-    }
+    """Machine, device, library versions and code version, for every benchmark JSON
+    (:func:`vrs_jax.runrecord.environment` plus matplotlib and the source hash)."""
+    env = runrecord.environment()
+    env["versions"]["matplotlib"] = runrecord.package_version("matplotlib")
+    env["code"]["vrs_jax_source_sha256"] = source_hash()
+    return env
 
 
 def base_doc(benchmark: str, args: argparse.Namespace, argv: list[str] | None

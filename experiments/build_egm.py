@@ -17,7 +17,7 @@ import argparse
 from experiments.common import add_scene_args, load_scene_from_args, scene_opts
 from vrs_jax import fileio, maps
 from vrs_jax.egm import build
-from vrs_jax.egm.map import export_colmap
+from vrs_jax.egm.colmap import export_colmap
 from vrs_jax.errors import cli_main
 
 

@@ -229,3 +229,13 @@ def test_table_and_number_formatting():
     assert common.pct(0.5) == "50.0%"
     assert common.evenly_spaced(20, 3).tolist() == [0, 10, 19]
     assert common.evenly_spaced(5, None).tolist() == list(range(5))
+
+
+def test_environment_is_the_run_record_environment_plus_extras():
+    from vrs_jax import runrecord
+
+    env = common.environment()
+    assert set(env) == {"time_utc", "machine", "device", "versions", "code", "env"}
+    assert set(env["versions"]) == set(runrecord.versions()) | {"matplotlib"}
+    assert env["code"]["vrs_jax_source_sha256"] == common.source_hash()
+    assert env["code"]["commit"] == runrecord.git_info()["commit"]

@@ -1,4 +1,4 @@
-"""EGM pytree: save/load, format version, corrupt files, byte breakdown, COLMAP export."""
+"""EGM pytree: save/load, format version, corrupt files, byte breakdown."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import zipfile
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pycolmap
 import pytest
 
 from vrs_jax import geometry as g
@@ -171,33 +170,6 @@ def test_map_bytes_match_files(tmp_path):
 def test_baseline_bytes_without_materialising():
     base = _toy(baseline=True)
     assert M.baseline_bytes(base.without_local_descriptors(), 8) == M.map_bytes(base)
-
-
-@pytest.mark.parametrize("text", [True, False])
-def test_colmap_export_reads_back(tmp_path, text):
-    egm = _toy()
-    d = M.export_colmap(egm, tmp_path / "model", text=text)
-    rec = pycolmap.Reconstruction(d)
-    assert rec.num_images() == egm.num_images and rec.num_reg_images() == egm.num_images
-    used = np.unique(np.asarray(egm.point_idx)[np.asarray(egm.kp_mask)])
-    assert rec.num_points3D() == len(used)
-    names = {im.name: im for im in rec.images.values()}
-    X = np.asarray(egm.points3d, np.float64)
-    for i, name in enumerate(egm.names):
-        im = names[name]
-        pose = im.cam_from_world()
-        np.testing.assert_allclose(pose.rotation.matrix(), egm.R[i], atol=1e-6)
-        np.testing.assert_allclose(pose.translation, egm.t[i], atol=1e-6)
-        cam = rec.camera(im.camera_id)
-        np.testing.assert_allclose(cam.calibration_matrix(), egm.K[i], atol=1e-4)
-        c = int(np.asarray(egm.kp_mask[i]).sum())
-        assert im.num_points2D() == c and im.num_points3D == c
-        for k, p2 in enumerate(im.points2D):
-            np.testing.assert_allclose(p2.xy, egm.keypoints[i, k, :2], atol=1e-4)
-            xyz = rec.point3D(p2.point3D_id).xyz
-            np.testing.assert_allclose(xyz, X[int(egm.point_idx[i, k])], atol=1e-5)
-    # the exported model reprojects like the map (cameras incl. distortion survived)
-    assert rec.compute_mean_reprojection_error() < 1e-2
 
 
 def test_select_keypoints_prefers_long_tracks_and_spreads():

@@ -205,16 +205,6 @@ def test_depth_range_filter_drops_implausible_points():
     assert tr.num_points == 0 and tr.stats["points_outside_depth_range"] >= 57
 
 
-def test_colmap_camera_projects_like_geometry():
-    K = g.intrinsics_matrix(300.0, 310.0, 160.5, 120.5)
-    X = np.random.default_rng(0).uniform([-1, -1, 2], [1, 1, 4], (30, 3))
-    for dist in (np.zeros(5), np.array([-0.2, 0.05, 1e-3, 2e-3, 0.0]),
-                 np.array([-0.2, 0.05, 1e-3, 2e-3, 0.01])):
-        cam = T.colmap_camera(K, dist, (W, H), 1)
-        ours, _ = g.project(K, np.eye(3), np.zeros(3), X, dist)
-        np.testing.assert_allclose(cam.img_from_cam(X), ours, atol=1e-6)
-
-
 # ----------------------------------------------------------------------------- bad input
 
 

@@ -17,8 +17,8 @@ from vrs_jax.errors import VrsError
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results, write_results
 
-RECALL_KEYS = ["1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50cm_5deg",
-               "500cm_10deg"]
+RECALL_KEYS = ["1cm_1deg", "2cm_2deg", "3cm_3deg", "5cm_5deg", "10cm_5deg", "25cm_2deg",
+               "50cm_5deg", "500cm_10deg"]
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -36,7 +36,7 @@ def perturbed(R: np.ndarray, t: np.ndarray, shift: np.ndarray, deg: float):
 # ----------------------------------------------------------------------------- metrics
 
 
-def test_pose_errors_hand_computed_and_missing_is_infinite():
+def test_pose_errors_hand_computed_and_missing_is_hlocs_inf_180():
     R_gt = np.stack([np.eye(3), rot_z(30), rot_z(-10), np.eye(3)])
     t_gt = np.array([[0, 0, 1.0], [1, 2, 3], [0, 0, 0], [5, 5, 5]])
     est = [perturbed(R_gt[0], t_gt[0], np.array([0.03, 0.04, 0.0]), 0.0),   # 5 cm, 0 deg
@@ -47,19 +47,74 @@ def test_pose_errors_hand_computed_and_missing_is_infinite():
     t_est = np.stack([e[1] for e in est])
     dt, dr = metrics.pose_errors(R_est, t_est, R_gt, t_gt)
     np.testing.assert_allclose(dt[:3], [0.05, 0.0, 2.0], atol=1e-12)
-    np.testing.assert_allclose(dr[:3], [0.0, 7.0, 3.0], atol=1e-6)
-    assert np.isinf(dt[3]) and np.isinf(dr[3])
+    np.testing.assert_allclose(dr[:3], [0.0, 7.0, 3.0], atol=1e-5)
+    assert np.isinf(dt[3]) and dr[3] == 180.0
     dt, dr = metrics.pose_errors(R_est, t_est, R_gt, t_gt, has_estimate=[True, False, True, True])
-    assert np.isinf(dt[1]) and np.isinf(dr[1]) and dt[0] == pytest.approx(0.05)
+    assert np.isinf(dt[1]) and dr[1] == 180.0 and dt[0] == pytest.approx(0.05)
 
 
-def test_recall_inclusive_bounds_and_keys():
+def test_pose_errors_match_hlocs_formula():
+    """hloc: e_t = ||-R_gt^T t_gt + R^T t||, e_R = deg |arccos(clip((tr(R_gt^T R) - 1) / 2))|,
+    written out per query here as hloc's loop does."""
+    rng = np.random.default_rng(3)
+    R_gt = np.stack([geometry.axis_angle_to_rot(v) for v in rng.normal(size=(6, 3))])
+    R_est = np.stack([geometry.axis_angle_to_rot(v) for v in rng.normal(size=(6, 3))])
+    t_gt, t_est = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    dt, dr = metrics.pose_errors(R_est, t_est, R_gt, t_gt)
+    for i in range(6):
+        e_t = np.linalg.norm(-R_gt[i].T @ t_gt[i] + R_est[i].T @ t_est[i])
+        cos = np.clip((np.trace(R_gt[i].T @ R_est[i]) - 1) / 2, -1.0, 1.0)
+        assert dt[i] == pytest.approx(e_t, rel=1e-14)
+        assert dr[i] == pytest.approx(np.rad2deg(abs(np.arccos(cos))), rel=1e-12)
+
+
+def test_hand_made_evaluation_strict_thresholds_and_missing_query():
+    """Five queries; answers worked out by hand with hloc's rules (strict <, missing query =
+    (inf m, 180 deg), medians over all queries).
+
+    q0: 0 cm, 0 deg      -> within every threshold
+    q1: 3 cm, 1 deg      -> exactly on 3 cm: not in 3cm/3deg; in 5/5, 10/5, 25/2, 50/5, 5m/10
+    q2: 4 cm, 3 deg      -> exactly on 3 deg: not in 3/3; in 5/5, 10/5, 50/5, 5m/10 (not 25/2)
+    q3: 30 cm, 6 deg     -> only 5m/10deg
+    q4: missing          -> nothing
+    Sorted t (cm): 0, 3, 4, 30, inf -> median 4; sorted R: 0, 1, 3, 6, 180 -> median 3.
+    """
+    R_gt = np.stack([rot_z(10.0 * i) for i in range(5)])
+    t_gt = np.array([[0.0, 0, 2], [1, 0, 2], [0, 1, 2], [1, 1, 2], [2, 2, 2]])
+    # Exact error values first (ties on the thresholds must be exact floats), then the same
+    # errors made from poses (equal up to rounding, so only checked away from the ties).
+    t_err = np.array([0.0, 0.03, 0.04, 0.30, 0.0])
+    R_err = np.array([0.0, 1.0, 3.0, 6.0, 0.0])
+    t_err_h, R_err_h = t_err.copy(), R_err.copy()
+    t_err_h[4], R_err_h[4] = np.inf, 180.0
+    # The metrics functions on the exact error values.
+    rec = metrics.recall(t_err_h, R_err_h)
+    assert rec == {"1cm_1deg": 0.2, "2cm_2deg": 0.2, "3cm_3deg": 0.2, "5cm_5deg": 0.6,
+                   "10cm_5deg": 0.6, "25cm_2deg": 0.4, "50cm_5deg": 0.6, "500cm_10deg": 0.8}
+    s = metrics.summarize(t_err_h, R_err_h)
+    assert s["n_queries"] == 5 and s["n_failed"] == 1
+    assert s["median_t_cm"] == pytest.approx(4.0) and s["median_R_deg"] == 3.0
+    # The same from poses (errors within float rounding of the hand values, away from ties).
+    est = [perturbed(R_gt[i], t_gt[i], np.array([t_err[i], 0.0, 0.0]), R_err[i])
+           for i in range(5)]
+    dt, dr = metrics.pose_errors(np.stack([e[0] for e in est]), np.stack([e[1] for e in est]),
+                                 R_gt, t_gt, has_estimate=[True, True, True, True, False])
+    np.testing.assert_allclose(dt[:4], t_err[:4], atol=1e-12)
+    np.testing.assert_allclose(dr[:4], R_err[:4], atol=1e-5)
+    assert np.isinf(dt[4]) and dr[4] == 180.0
+    s2 = metrics.summarize(dt, dr)
+    assert s2["median_t_cm"] == pytest.approx(4.0) and s2["median_R_deg"] == pytest.approx(3.0)
+    assert s2["recall"]["5cm_5deg"] == 0.6 and s2["recall"]["500cm_10deg"] == 0.8
+
+
+def test_recall_strict_bounds_and_keys():
     t = np.array([0.01, 0.05, 0.05, 0.3, np.inf])
-    r = np.array([1.0, 5.0, 5.1, 1.0, np.inf])
+    r = np.array([1.0, 5.0, 5.1, 1.0, 180.0])
     rec = metrics.recall(t, r)
     assert list(rec) == RECALL_KEYS
-    assert rec == {"1cm_1deg": 0.2, "2cm_2deg": 0.2, "5cm_5deg": 0.4, "10cm_5deg": 0.4,
-                   "25cm_2deg": 0.2, "50cm_5deg": 0.6, "500cm_10deg": 0.8}
+    # q0 (1 cm, 1 deg) is on the 1/1 bound: out there, in from 2/2 on; q1 is on 5 cm and 5 deg.
+    assert rec == {"1cm_1deg": 0.0, "2cm_2deg": 0.2, "3cm_3deg": 0.2, "5cm_5deg": 0.2,
+                   "10cm_5deg": 0.2, "25cm_2deg": 0.2, "50cm_5deg": 0.4, "500cm_10deg": 0.8}
     assert metrics.recall(np.zeros(0), np.zeros(0)) == dict.fromkeys(RECALL_KEYS, 0.0)
 
 
@@ -224,7 +279,7 @@ def test_evaluate_cli_end_to_end(tmp_path, capsys):
     assert doc["recall"]["2cm_2deg"] == pytest.approx(1 / 3)
     assert doc["recall"]["5cm_5deg"] == pytest.approx(2 / 3)
     assert doc["recall"]["25cm_2deg"] == pytest.approx(2 / 3)
-    assert doc["per_query"][q[2]] == {"t_cm": None, "R_deg": None}
+    assert doc["per_query"][q[2]] == {"t_cm": None, "R_deg": 180.0}
     assert doc["per_query"][q[0]]["t_cm"] == pytest.approx(0.0, abs=1e-9)
 
 

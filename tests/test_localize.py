@@ -156,6 +156,8 @@ def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene
                 "rays_per_query", "nerf_evals_per_query", "mode", "config", "per_query"):
         assert key in s
     assert s["mode"] == "real"
+    assert set(s["recall"]) == {"1cm_1deg", "2cm_2deg", "3cm_3deg", "5cm_5deg", "10cm_5deg",
+                                "25cm_2deg", "50cm_5deg", "500cm_10deg"}
     # the written poses are the localized ones: errors agree with the summary's median
     dt = [geometry.pose_errors(*res[n], queries.R[i], queries.t[i])[0]
           for i, n in enumerate(queries.names)]

@@ -136,9 +136,9 @@ def test_aachen_errors(tmp_path):
     shutil.copytree(src, root)
     ql = root / "queries" / "day_time_queries_with_intrinsics.txt"
     lines = ql.read_text().splitlines()
-    lines[2] = lines[2].replace("SIMPLE_RADIAL", "FULL_OPENCV")
+    lines[2] = lines[2].replace("SIMPLE_RADIAL", "OPENCV_FISHEYE")
     ql.write_text("\n".join(lines) + "\n")
-    raises(ql, "aachen", root, line=3, problem="unsupported camera model FULL_OPENCV")
+    raises(ql, "aachen", root, line=3, problem="unsupported camera model OPENCV_FISHEYE")
     lines[2] = "query/day/x.jpg SIMPLE_RADIAL 1024 768 977 512 oops 0.04"
     ql.write_text("\n".join(lines) + "\n")
     raises(ql, "aachen", root, line=3, problem="malformed query line")
@@ -152,12 +152,14 @@ def test_colmap_errors(tmp_path):
     raises(fern_model, "colmap", fern_model, problem="images.bin / images.txt missing")
     root = tmp_path / "m"
     root.mkdir()
-    (root / "cameras.txt").write_text("1 FULL_OPENCV 8 6 5 5 4 3 0 0 0 0 0 0 0 0\n")
+    (root / "cameras.txt").write_text("1 FULL_OPENCV 8 6 5 5 4 3 0 0 0 0 0 0.1 0 0\n")
     (root / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
     (root / "points3D.txt").write_text("")
     (tmp_path / "images").mkdir()
     cv2.imwrite(str(tmp_path / "images" / "a.png"), np.zeros((6, 8, 3), np.uint8))
-    raises(root, "colmap", root, problem="unsupported camera model FULL_OPENCV")
+    raises(root, "colmap", root, problem="FULL_OPENCV camera with k4, k5, k6 = 0.1, 0, 0")
+    (root / "cameras.txt").write_text("1 OPENCV_FISHEYE 8 6 5 5 4 3 0 0 0 0\n")
+    raises(root, "colmap", root, problem="unsupported camera model OPENCV_FISHEYE")
     (root / "cameras.txt").write_text("1 PINHOLE 8 6 5 5 4 3\n")
     raises(tmp_path / "elsewhere", "colmap", root, problem="images folder not found",
            images=tmp_path / "elsewhere")

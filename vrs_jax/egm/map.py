@@ -22,7 +22,6 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pycolmap
 
 from vrs_jax import geometry
 from vrs_jax.egm.retrieval import Vocabulary
@@ -267,61 +266,3 @@ def npz_parts(npz: bytes) -> dict[str, int]:
             out[part] = out.get(part, 0) + info.compress_size
     out["container"] = out.get("container", 0) + len(npz) - sum(out.values())
     return out
-
-
-# ----------------------------------------------------------------------------- COLMAP export
-
-
-def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
-    """The map as a pycolmap Reconstruction: one camera per image (PINHOLE / OPENCV /
-    FULL_OPENCV), images with the EGM keypoints as 2D points, points3D with their tracks.
-
-    Image i has camera/image id i + 1; points get ids in the order of ``points3d`` (a point
-    that no keypoint links -- none in maps from build_egm -- is not exported).
-    """
-    from vrs_jax.egm.triangulate import colmap_camera
-
-    rec = pycolmap.Reconstruction()
-    mask = np.asarray(egm.kp_mask)
-    kp = np.asarray(egm.keypoints, np.float64)
-    pidx = np.asarray(egm.point_idx)
-    R = np.asarray(egm.R, np.float64)
-    t = np.asarray(egm.t, np.float64)
-    for i, name in enumerate(egm.names):
-        rec.add_camera_with_trivial_rig(colmap_camera(np.asarray(egm.K[i], np.float64),
-                                                      np.asarray(egm.dist[i], np.float64),
-                                                      np.asarray(egm.sizes[i]), i + 1))
-        c = int(mask[i].sum())
-        image = pycolmap.Image(name=name, keypoints=kp[i, :c, :2], camera_id=i + 1,
-                               image_id=i + 1)
-        # re-orthonormalise the float32 rotation (COLMAP stores a unit quaternion)
-        u, _, vt = np.linalg.svd(R[i])
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(u @ vt), t[i])
-        rec.add_image_with_trivial_frame(image, pose)
-    X = np.asarray(egm.points3d, np.float64)
-    obs_i, obs_k = np.nonzero(mask)
-    obs_p = pidx[obs_i, obs_k]
-    order = np.argsort(obs_p, kind="stable")
-    obs_i, obs_k, obs_p = obs_i[order], obs_k[order], obs_p[order]
-    bounds = np.searchsorted(obs_p, np.arange(len(X) + 1))
-    for m in range(len(X)):
-        a, b = bounds[m], bounds[m + 1]
-        if a == b:
-            continue
-        track = pycolmap.Track()
-        for i, k in zip(obs_i[a:b], obs_k[a:b], strict=True):
-            track.add_element(int(i) + 1, int(k))
-        rec.add_point3D(X[m], track)
-    return rec
-
-
-def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True) -> Path:
-    """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin)."""
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    rec = to_colmap(egm)
-    if text:
-        rec.write_text(d)
-    else:
-        rec.write_binary(d)
-    return d

@@ -28,6 +28,7 @@ import pycolmap
 
 from vrs_jax import geometry
 from vrs_jax.data.scene import Scene
+from vrs_jax.egm.colmap import colmap_camera
 from vrs_jax.egm.sfm import quiet_pycolmap
 from vrs_jax.errors import VrsError
 from vrs_jax.features.matching import match_jit
@@ -220,23 +221,6 @@ def match_pairs(scene: Scene, keypoints: list[np.ndarray], descriptors: list[np.
 
 
 # ----------------------------------------------------------------------------- pycolmap
-
-
-def colmap_camera(K: np.ndarray, dist: np.ndarray, size, camera_id: int) -> pycolmap.Camera:
-    """A pycolmap camera for OpenCV intrinsics: PINHOLE, OPENCV or FULL_OPENCV by distortion."""
-    K = np.asarray(K, np.float64)
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if not np.all(d == 0):
-        if d[4] == 0:
-            model, params = "OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3]]
-        else:
-            model, params = "FULL_OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3], d[4],
-                                            0, 0, 0]
-    else:
-        model, params = "PINHOLE", [fx, fy, cx, cy]
-    return pycolmap.Camera(model=model, width=int(size[0]), height=int(size[1]),
-                           params=params, camera_id=camera_id)
 
 
 def check_cameras(scene: Scene) -> None:

@@ -31,31 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from vrs_jax.data.readers import _common as C
-from vrs_jax.data.readers import colmap as colmap_reader
 from vrs_jax.data.readers import nvm as nvm_reader
+from vrs_jax.data.readers.query_list import read_query_list
 from vrs_jax.errors import VrsError, require_dir
 
 DEFAULT_NVM = Path("3D-models") / "aachen_cvpr2018_db.nvm"
-
-
-def read_query_list(path: Path) -> list[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]]:
-    """``name MODEL w h params...`` lines -> [(name, K [3, 3], dist [5], (w, h))]."""
-    out = []
-    for lineno, text in C.text_lines(path, "query list"):
-        if text.startswith("#"):
-            continue
-        parts = text.split()
-        if len(parts) < 5:
-            raise VrsError("malformed query line: expected 'name MODEL width height params...'",
-                           path, lineno)
-        wh = C.parse_floats(parts[2:4], path, lineno, "query line (width height)")
-        if not all(C.finite_positive(x) for x in wh):
-            raise VrsError("malformed query line: width and height must be positive", path,
-                           lineno)
-        params = C.parse_floats(parts[4:], path, lineno, "query line (camera parameters)")
-        K, dist = colmap_reader.camera_to_K_dist(parts[1], params, path, lineno)
-        out.append((parts[0], K, dist, (int(wh[0]), int(wh[1]))))
-    return out
 
 
 def load(root: str | Path, *, nvm: str | Path | None = None, images: str | Path | None = None,
@@ -112,16 +92,16 @@ def load(root: str | Path, *, nvm: str | Path | None = None, images: str | Path 
         query_files = [Path(q) for q in queries]
     q_names, q_paths, q_K, q_dist, q_sizes, missing = [], [], [], [], [], []
     for qf in query_files:
-        for name, K, dist, size in read_query_list(qf):
-            p = img_dir / name
+        for e in read_query_list(qf):
+            p = img_dir / e.name
             if not p.is_file():
-                missing.append(name)
+                missing.append(e.name)
                 continue
-            q_names.append(name)
+            q_names.append(e.name)
             q_paths.append(p)
-            q_K.append(K)
-            q_dist.append(dist)
-            q_sizes.append(size)
+            q_K.append(e.K)
+            q_dist.append(e.dist)
+            q_sizes.append((e.width, e.height))
     C.warn_list(f"Aachen queries whose image is missing under {img_dir}, skipped", missing)
     actual = C.image_sizes(q_paths)
     q_K = [C.scale_to_size(K, s0, s) for K, s0, s in zip(q_K, q_sizes, actual, strict=True)]

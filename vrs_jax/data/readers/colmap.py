@@ -16,34 +16,47 @@ import pycolmap
 from vrs_jax.data.readers import _common as C
 from vrs_jax.errors import VrsError, require_dir
 
-# Camera models that are a pinhole plus (a subset of) OpenCV's distortion. Parameter order as
-# in COLMAP's models.h.
-SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+# Camera models that are a pinhole plus (a subset of) OpenCV's 5-coefficient distortion, with
+# their parameter counts (order as in COLMAP's models.h). FULL_OPENCV is accepted only when its
+# rational part k4 = k5 = k6 = 0 (then it is OPENCV plus k3).
+_N_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8,
+             "FULL_OPENCV": 12}
+SUPPORTED_MODELS = tuple(_N_PARAMS)
 
 
 def camera_to_K_dist(model: str, params, where: Path | str | None = None,
                      line: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A COLMAP camera model and its parameters -> (K [3, 3], dist [5] OpenCV order).
 
-    Raises VrsError (naming ``where``/``line``) for another model or a wrong parameter count.
+    ``dist`` is ``(k1, k2, p1, p2, k3)``: SIMPLE_RADIAL fills k1, RADIAL k1 k2, OPENCV k1 k2
+    p1 p2, FULL_OPENCV all five (its k4 k5 k6 must be 0). The projection of
+    ``geometry.project(K, ..., dist)`` then equals COLMAP's ``img_from_cam`` for that camera.
+
+    Raises VrsError (naming ``where``/``line``) for another model ("unsupported camera model
+    X"), a wrong parameter count, non-finite values, a non-positive focal length, or a
+    FULL_OPENCV camera with a rational distortion part.
     """
     p = np.asarray(params, np.float64).ravel()
-    need = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
-    if model not in need:
+    if model not in _N_PARAMS:
         raise VrsError(f"unsupported camera model {model} (supported: "
                        f"{', '.join(SUPPORTED_MODELS)})", where, line)
-    if p.size != need[model]:
-        raise VrsError(f"camera model {model} takes {need[model]} parameters, got {p.size}",
+    if p.size != _N_PARAMS[model]:
+        raise VrsError(f"camera model {model} takes {_N_PARAMS[model]} parameters, got {p.size}",
                        where, line)
     if not np.all(np.isfinite(p)):
         raise VrsError(f"non-finite {model} camera parameters", where, line)
+    if model == "FULL_OPENCV" and np.any(p[9:] != 0):
+        raise VrsError("FULL_OPENCV camera with k4, k5, k6 = "
+                       f"{p[9]:g}, {p[10]:g}, {p[11]:g}: the rational distortion part is not "
+                       "supported (only OpenCV's k1 k2 p1 p2 k3; k4 = k5 = k6 = 0 is required)",
+                       where, line)
     dist = np.zeros(5)
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         K = C.pinhole(p[0], p[0], p[1], p[2])
         dist[: p.size - 3] = p[3:]  # k1 (, k2)
     else:
         K = C.pinhole(p[0], p[1], p[2], p[3])
-        dist[: p.size - 4] = p[4:]  # k1 k2 p1 p2 (OPENCV); nothing for PINHOLE
+        dist[: min(p.size - 4, 5)] = p[4:9]  # k1 k2 p1 p2 (OPENCV) (, k3: FULL_OPENCV)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise VrsError(f"{model} camera has a non-positive focal length", where, line)
     return K, dist

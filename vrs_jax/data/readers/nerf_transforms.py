@@ -17,12 +17,21 @@
   (nerf_synthetic writes ``./train/r_0`` for ``train/r_0.png``). Frames whose file is missing
   are skipped with one warning. RGBA images are composited on ``background`` (recorded in
   ``Scene.background``, which ``images.read_image`` takes).
+- Split lists (nerfstudio): ``train_filenames`` / ``val_filenames`` / ``test_filenames`` at
+  the top level of a transforms file name frames by their ``file_path`` (relative to the JSON's
+  folder, ``./`` optional, with or without the image's extension). See :func:`load` for how
+  they choose queries; an entry that matches no frame, or a frame in both the train list and
+  a val/test list, is a VrsError.
+- Masks (``mask_path`` per frame, or at the top level) are NOT used: one warning says so and
+  every pixel of the images is used.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import posixpath
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +41,7 @@ from vrs_jax.data.readers import _common as C
 from vrs_jax.errors import VrsError, require_dir
 
 _DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+_SPLITS = ("train", "val", "test")
 
 
 def _num(d: dict, key: str, path: Path, where: str) -> float | None:
@@ -109,6 +119,59 @@ def _transforms_files(root: Path, split: str | None) -> list[tuple[Path, bool]]:
     return found
 
 
+def _split_lists(meta: dict, path: Path) -> dict[str, set[str]]:
+    """{split: normalised file paths} of the ``{split}_filenames`` lists present in ``meta``."""
+    out = {}
+    for split in _SPLITS:
+        key = f"{split}_filenames"
+        if key not in meta:
+            continue
+        lst = meta[key]
+        if not isinstance(lst, list) or not all(isinstance(x, str) for x in lst):
+            raise VrsError(f"'{key}' must be a list of file paths", path)
+        out[split] = {_norm(x) for x in lst}
+    return out
+
+
+def _norm(file_path: str) -> str:
+    """A ``file_path`` as a comparable key: posix separators, no ``./``."""
+    return posixpath.normpath(str(file_path).replace("\\", "/"))
+
+
+def _frame_keys(frame: dict, img: Path | None, folder: Path) -> set[str]:
+    """The keys a split list may name a frame by: its file_path, and its image's path with
+    and without the extension."""
+    keys = {_norm(frame["file_path"])}
+    if img is not None:
+        try:
+            rel = img.relative_to(folder)
+        except ValueError:
+            return keys
+        keys |= {rel.as_posix(), rel.with_suffix("").as_posix()}
+    return keys
+
+
+def _roles(lists: dict[str, set[str]], keys: list[set[str]], file_paths: list[str],
+           path: Path) -> list[str]:
+    """Per frame of one file: "query" (in val/test), "ref" (in train, or in no list when
+    there is no train list) or "skip" (in no list while a train list exists)."""
+    for split, names in lists.items():
+        known = set().union(*keys) if keys else set()
+        unknown = sorted(names - known)
+        if unknown:
+            raise VrsError(f"{split}_filenames names {len(unknown)} file(s) that no frame has "
+                           f"as file_path: {', '.join(unknown[:3])}", path)
+    roles = []
+    for k, fp in zip(keys, file_paths, strict=True):
+        in_eval = any(k & lists.get(s, set()) for s in ("val", "test"))
+        in_train = bool(k & lists.get("train", set()))
+        if in_eval and in_train:
+            raise VrsError(f"frame {fp} is in train_filenames and in a val/test list", path)
+        roles.append("query" if in_eval else "ref" if in_train or "train" not in lists
+                     else "skip")
+    return roles
+
+
 def load(root: str | Path, *, split: str | None = None,
          background: tuple[float, float, float] = (1.0, 1.0, 1.0), query_every: int = 0):
     """Read a NeRF dataset folder.
@@ -119,9 +182,17 @@ def load(root: str | Path, *, split: str | None = None,
         ``transforms.json`` if present, else all of ``transforms_{train,val,test}.json`` that
         exist, with the test frames as queries.
       background: RGB in [0, 1] that RGBA images are composited on (``Scene.background``).
-      query_every: hold out every N-th frame (by name) as a query when no test split is read.
+      query_every: hold out every N-th frame (by name) as a query when no test split file
+        is read. It wins over split lists: with ``query_every > 0`` the lists are ignored
+        (with a warning) and every frame is used.
     Returns:
       Scene with names relative to ``root`` (e.g. ``train/r_0.png``).
+
+    Queries, in order of precedence: the frames of ``transforms_test.json`` when the split
+    files are read; else, when ``query_every > 0``, every N-th frame by name; else, when the
+    file has nerfstudio split lists, the frames in ``val_filenames`` or ``test_filenames``
+    (references: the frames in ``train_filenames``; frames in no list are skipped with a
+    warning when a train list exists, and are references when it does not); else none.
     """
     root = require_dir(root, "NeRF dataset folder")
     bg = tuple(float(x) for x in background)
@@ -129,13 +200,31 @@ def load(root: str | Path, *, split: str | None = None,
         raise VrsError(f"background must be 3 numbers in [0, 1], got {background}", root)
     files = _transforms_files(root, split)
     names, paths, frames, is_query, missing = [], [], [], [], []
+    masks, unlisted, ignored_lists = False, [], []
     for jf, query in files:
         meta = _read_json(jf)
+        lists = _split_lists(meta, jf)
+        masks = masks or "mask_path" in meta
+        if lists and query_every > 0:
+            ignored_lists.append(jf)
+            lists = {}
+        keys, fps, roles = [], [], None
+        if lists:
+            for frame in meta["frames"]:
+                ok = isinstance(frame, dict) and "file_path" in frame
+                fps.append(str(frame["file_path"]) if ok else "")
+                keys.append(_frame_keys(frame, C.find_image(jf.parent / fps[-1]), jf.parent)
+                            if ok else set())
+            roles = _roles(lists, keys, fps, jf)
         for k, frame in enumerate(meta["frames"]):
             where = f"frame {k}"
             if not isinstance(frame, dict) or "file_path" not in frame \
                     or "transform_matrix" not in frame:
                 raise VrsError(f"{where}: needs 'file_path' and 'transform_matrix'", jf)
+            masks = masks or "mask_path" in frame
+            if roles is not None and roles[k] == "skip":
+                unlisted.append(str(frame["file_path"]))
+                continue
             img = C.find_image(jf.parent / str(frame["file_path"]))
             if img is None:
                 missing.append(str(frame["file_path"]))
@@ -155,8 +244,16 @@ def load(root: str | Path, *, split: str | None = None,
             names.append(name)
             paths.append(img)
             frames.append((meta, frame, M, jf, where))
-            is_query.append(query)
+            is_query.append(query or (roles is not None and roles[k] == "query"))
     C.warn_list("NeRF frames whose image file is missing, skipped", missing)
+    C.warn_list("NeRF frames in none of train/val/test_filenames, skipped", unlisted)
+    if ignored_lists:
+        warnings.warn(f"query_every={query_every} given: the train/val/test_filenames split of "
+                      f"{ignored_lists[0]} is ignored (every frame used, every "
+                      f"{query_every}-th by name is a query)", stacklevel=2)
+    if masks:
+        warnings.warn(f"{files[0][0]}: mask_path given, but vrs-jax does not use masks: all "
+                      "pixels of the images are used", stacklevel=2)
     if not names:
         raise VrsError("no frame with an existing image file", files[0][0])
     sizes = C.image_sizes(paths)

@@ -1,0 +1,95 @@
+"""COLMAP interoperability of the EGM: cameras and the map as a COLMAP sparse model.
+
+:func:`export_colmap` writes a map so that COLMAP, hloc, pycolmap and our own COLMAP reader
+(``vrs_jax.data.readers.colmap``) open it: one camera per image in the simplest model that
+represents its intrinsics exactly (:func:`colmap_camera`), the EGM keypoints as 2D points and
+the 3D points with their tracks.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from vrs_jax.egm.map import EGM
+
+
+def colmap_camera(K: np.ndarray, dist: np.ndarray, size, camera_id: int) -> pycolmap.Camera:
+    """The simplest pycolmap camera that represents OpenCV intrinsics exactly.
+
+    Args:
+      K: [3, 3] intrinsics (no skew); dist: [5] OpenCV (k1, k2, p1, p2, k3) or None.
+      size: (width, height).
+    Returns:
+      PINHOLE (fx, fy, cx, cy) when all of dist is 0, OPENCV (+ k1 k2 p1 p2) when k3 = 0,
+      else FULL_OPENCV (+ k1 k2 p1 p2 k3, with k4 = k5 = k6 = 0). All three are read back by
+      :func:`vrs_jax.data.readers.colmap.camera_to_K_dist` to the same K and dist.
+    """
+    K = np.asarray(K, np.float64)
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not np.all(d == 0):
+        if d[4] == 0:
+            model, params = "OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3]]
+        else:
+            model, params = "FULL_OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3], d[4],
+                                            0, 0, 0]
+    else:
+        model, params = "PINHOLE", [fx, fy, cx, cy]
+    return pycolmap.Camera(model=model, width=int(size[0]), height=int(size[1]),
+                           params=params, camera_id=camera_id)
+
+
+def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
+    """The map as a pycolmap Reconstruction: one camera per image (PINHOLE / OPENCV /
+    FULL_OPENCV), images with the EGM keypoints as 2D points, points3D with their tracks.
+
+    Image i has camera/image id i + 1; points get ids in the order of ``points3d`` (a point
+    that no keypoint links -- none in maps from build_egm -- is not exported).
+    """
+    rec = pycolmap.Reconstruction()
+    mask = np.asarray(egm.kp_mask)
+    kp = np.asarray(egm.keypoints, np.float64)
+    pidx = np.asarray(egm.point_idx)
+    R = np.asarray(egm.R, np.float64)
+    t = np.asarray(egm.t, np.float64)
+    for i, name in enumerate(egm.names):
+        rec.add_camera_with_trivial_rig(colmap_camera(np.asarray(egm.K[i], np.float64),
+                                                      np.asarray(egm.dist[i], np.float64),
+                                                      np.asarray(egm.sizes[i]), i + 1))
+        c = int(mask[i].sum())
+        image = pycolmap.Image(name=name, keypoints=kp[i, :c, :2], camera_id=i + 1,
+                               image_id=i + 1)
+        # re-orthonormalise the float32 rotation (COLMAP stores a unit quaternion)
+        u, _, vt = np.linalg.svd(R[i])
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(u @ vt), t[i])
+        rec.add_image_with_trivial_frame(image, pose)
+    X = np.asarray(egm.points3d, np.float64)
+    obs_i, obs_k = np.nonzero(mask)
+    obs_p = pidx[obs_i, obs_k]
+    order = np.argsort(obs_p, kind="stable")
+    obs_i, obs_k, obs_p = obs_i[order], obs_k[order], obs_p[order]
+    bounds = np.searchsorted(obs_p, np.arange(len(X) + 1))
+    for m in range(len(X)):
+        a, b = bounds[m], bounds[m + 1]
+        if a == b:
+            continue
+        track = pycolmap.Track()
+        for i, k in zip(obs_i[a:b], obs_k[a:b], strict=True):
+            track.add_element(int(i) + 1, int(k))
+        rec.add_point3D(X[m], track)
+    return rec
+
+
+def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True) -> Path:
+    """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin)."""
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    rec = to_colmap(egm)
+    if text:
+        rec.write_text(d)
+    else:
+        rec.write_binary(d)
+    return d
