@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_scene_args(p, default_scenes=("synthetic", "fern"))
     p.add_argument("--sizes", type=int, nargs="+", default=list(ABLATION_SIZES),
                    help=f"render-mode patch sizes P (from {PATCH_SIZES})")
-    p.add_argument("--no-gt", action="store_true", help="leave out the GT (baseline) row")
+    p.add_argument("--no-real", action="store_true",
+                   help="leave out the real-patch (GT, baseline) row")
     p.add_argument("--with-full-sampling", action="store_true",
                    help="add a render row at the map's P with coarse + fine sampling")
     p.add_argument("--fresh", action="store_true",
@@ -46,12 +47,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def row_of(scene: str, label: str, cfg, s: dict) -> dict:
-    return {"scene": scene, "method": label, "mode": cfg.mode, "patch_size": cfg.patches.size,
-            "depth_guided": cfg.depth_guided if cfg.mode == "render" else None,
+    return {"scene": scene, "method": label, "mode": cfg.source,
+            "patch_size": s["patch_size"],
+            "depth_guided": cfg.depth_guided if cfg.source == "render" else None,
             "n_queries": s["n_queries"], "median_t_cm": s["median_t_cm"],
             "median_R_deg": s["median_R_deg"], "recall": s["recall"],
             "n_fallback": s["n_fallback"], "median_inliers": s["median_inliers"],
-            "render_s_per_query": s["timing_s"]["render"] if cfg.mode == "render" else 0.0,
+            "render_s_per_query": s["timing_s"]["render"] if cfg.source == "render" else 0.0,
             "localize_s_per_query": s["localize_s_per_query"],
             "rays_per_query": s["rays_per_query"],
             "nerf_evals_per_query": s["nerf_evals_per_query"],
@@ -91,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.with_full_sampling:
             plan.append((f"render {map_p}x{map_p} coarse+fine",
                          common.localize_cfg(ctx, "render", map_p, depth_guided=False)))
-        if not args.no_gt:
-            plan.append((f"GT (real {map_p}x{map_p})", common.localize_cfg(ctx, "gt")))
+        if not args.no_real:
+            plan.append((f"real {map_p}x{map_p} (GT)", common.localize_cfg(ctx, "real")))
         for label, cfg in plan:
             s = common.localize_run(ctx, cfg, args.work, fresh=args.fresh,
                                     progress=not args.quiet)

@@ -3,7 +3,7 @@
 Every benchmark (``python -m benchmarks.NAME``) takes the same scene arguments
 (:func:`add_scene_args`): ``--scenes``, ``--config``, ``--nerf-minutes``, ``--work``,
 ``--data-root``, ``--map NAME=DIR``, ``--max-queries``. Maps are built with
-:func:`vrs_jax.pipeline.build_map` into ``WORK/NAME-CONFIG/map`` and reused when they exist
+:func:`vrs_jax.maps.build_map` into ``WORK/NAME-CONFIG/map`` and reused when they exist
 (``build_map`` skips finished work), so the suite pays for map building once.
 
 Scenes (:data:`SCENES`):
@@ -11,13 +11,12 @@ Scenes (:data:`SCENES`):
 - ``synthetic``: the embedded synthetic room (the demo's scene, 60 references + 20 queries
   at 320x240), generated into ``WORK/synthetic/scene``;
 - ``fern``: LLFF fern (20 photos at 504x378), every 5th image a query;
-- ``lego``: NeRF synthetic lego (100 views at 200x200), every 8th image a query.
+- ``lego``: NeRF synthetic lego (100 views at 200x200), every 8th image a query;
+- ``scan24``: DTU scan 24 (49 real photos at 384x384, calibrated poses), every 5th a query.
 
-Time budget of the suite with default arguments on 2 CPU cores (estimates; the map
-building is paid once): maps ~13 min (NeRF 5 + 3 + 3 min, EGMs ~1.5 min, synthetic scene
-~20 s), localize ~4 min, ablation ~3 min (reusing localize's runs), render ~3 min, figures
-~1 min, map_size seconds: ~24 min in all. Suggested order: map_size (builds the maps),
-localize, ablation, render, figures.
+NeRF training length is a step budget per scene (:attr:`SceneSpec.nerf_steps`, stored in the
+map's config), so a benchmark map does not depend on machine load. Suggested order: map_size
+(builds the maps), localize, ablation, render, figures.
 
 The real scenes are read from ``--data-root`` (default ``$VRS_SHARED_DATA`` or the
 ``shared/data`` folder beside the checkout) and skipped with a note when absent.
@@ -67,21 +66,22 @@ class SceneSpec:
     fmt: str  # reader format (vrs_jax.data.readers)
     parts: tuple[str, ...]  # path under --data-root; () for the generated synthetic scene
     query_every: int | None  # hold out every N-th image as a query (formats without a split)
-    # NeRF training budget (minutes, 2 CPU cores, cpu-small) when the suite builds the map.
-    # The whole suite must finish in 30 minutes on 2 cores, map building included, so the
-    # three scenes share ~11 minutes of training: the synthetic scene gets most (it carries
-    # the accuracy claims); fern (16 references) and lego (88 at 200x200) get 3 each.
-    nerf_minutes: float
+    # NeRF training steps (cpu-small) when the suite builds the map: the synthetic room (the
+    # demo's scene) trains as the config says; the real scenes 3000 steps each (~5 min on 2
+    # cores) so that map building stays within ~25 minutes for all four.
+    nerf_steps: int | None
     note: str
 
 
 SCENES: dict[str, SceneSpec] = {
-    "synthetic": SceneSpec("synthetic", "7scenes", (), None, 5.0,
+    "synthetic": SceneSpec("synthetic", "7scenes", (), None, None,
                            "embedded synthetic room, 60 references + 20 queries at 320x240"),
-    "fern": SceneSpec("fern", "llff", ("llff_fern", "data", "nerf_llff_data", "fern"), 5, 3.0,
+    "fern": SceneSpec("fern", "llff", ("llff_fern", "data", "nerf_llff_data", "fern"), 5, 3000,
                       "LLFF fern, 20 photos at 504x378, every 5th a query"),
-    "lego": SceneSpec("lego", "nerf", ("nerf_synthetic_lego_200",), 8, 3.0,
+    "lego": SceneSpec("lego", "nerf", ("nerf_synthetic_lego_200",), 8, 3000,
                       "NeRF synthetic lego, 100 views at 200x200, every 8th a query"),
+    "scan24": SceneSpec("scan24", "nerf", ("dtu_scan24",), 5, 3000,
+                        "DTU scan 24, 49 real photos at 384x384, every 5th a query"),
 }
 
 
@@ -96,14 +96,12 @@ def add_scene_args(p: argparse.ArgumentParser, default_scenes: Sequence[str]) ->
                    help=f"comma-separated scenes among {', '.join(SCENES)} (scenes whose data "
                         "is absent are skipped with a note)")
     p.add_argument("--config", default="cpu-small",
-                   help="pipeline config of the maps the benchmark builds (paper, cpu-small, "
-                        "test)")
-    p.add_argument("--nerf-minutes", type=float, default=None,
-                   help="NeRF training budget per scene when a map is built (default per "
-                        "scene: " + ", ".join(f"{s.name} {s.nerf_minutes:g}"
-                                              for s in SCENES.values()) + " min)")
+                   help="map and localize config of the maps the benchmark builds (paper, "
+                        "cpu-small, test)")
     p.add_argument("--nerf-steps", type=int, default=None,
-                   help="NeRF training steps when a map is built (default: the config's)")
+                   help="NeRF training steps when a map is built (default per scene: "
+                        + ", ".join(f"{s.name} {s.nerf_steps or 'the config'}"
+                                    for s in SCENES.values()) + ")")
     p.add_argument("--work", default=DEFAULT_WORK,
                    help="folder of the benchmark maps, scenes and run records (reused)")
     p.add_argument("--data-root", default=None,
@@ -149,7 +147,7 @@ class SceneCtx:
     scene: Any  # vrs_jax.data.scene.Scene (references + queries)
     queries: Any  # Scene of the queries used (possibly an evenly spaced subset)
     map_dir: Path
-    m: Any  # pipeline.LoadedMap
+    m: Any  # vrs_jax.maps.Map
 
 
 def _load_scene(spec: SceneSpec, root: Path):
@@ -192,31 +190,28 @@ def evenly_spaced(n: int, k: int | None) -> np.ndarray:
 
 def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneCtx | None:
     """Load (building if needed) the map of scene ``name``; None if its data is absent."""
-    from vrs_jax import pipeline
+    from vrs_jax import maps
 
     spec = SCENES[name]
-    maps = parse_maps(args.map)
-    if name in maps:
-        map_dir = maps[name]
-        meta_p = map_dir / "map.json"
-        if not meta_p.is_file():
-            raise VrsError("not a vrs-jax map folder (no map.json)", map_dir)
-        key = json.loads(meta_p.read_text()).get("key", {})
-        scene = _load_scene(dataclasses.replace(spec, fmt=key.get("format", spec.fmt)),
-                            Path(key["root"]))
+    given = parse_maps(args.map)
+    if name in given:
+        map_dir = given[name]
+        src = maps.load_map(map_dir, require_ilm=False).source
+        scene = _load_scene(dataclasses.replace(spec, fmt=src.format or spec.fmt),
+                            Path(src.root))
     else:
         root = scene_root(name, args, log)
         if root is None:
             return None
         scene = _load_scene(spec, root)
-        pcfg = pipeline.get_config(args.config)
-        map_dir = Path(args.work) / f"{name}-{pcfg.name}" / "map"
-        minutes = args.nerf_minutes if args.nerf_minutes is not None else spec.nerf_minutes
-        log(f"[{name}] map {map_dir} (built if missing; NeRF budget {minutes:g} min)")
-        pipeline.build_map(scene, map_dir, pcfg, progress=not args.quiet,
-                           log=lambda s: log(f"[{name}] {s}"), nerf_steps=args.nerf_steps,
-                           nerf_minutes=minutes)
-    m = pipeline.load_map(map_dir)
+        steps = args.nerf_steps if args.nerf_steps is not None else spec.nerf_steps
+        cfg = maps.get_config(args.config, **({"max_steps": steps} if steps else {}))
+        map_dir = Path(args.work) / f"{name}-{cfg.name}" / "map"
+        log(f"[{name}] map {map_dir} (built if missing; NeRF {cfg.nerf.max_steps} steps)")
+        opts = {"query_every": spec.query_every} if spec.query_every else {}
+        maps.build_map(scene, map_dir, cfg, progress=not args.quiet,
+                       log=lambda s: log(f"[{name}] {s}"), source_options=opts)
+    m = maps.load_map(map_dir)
     if set(m.egm.names) != set(scene.references().names):
         raise VrsError(f"the map's reference images are not the {name} scene's references "
                        "(another split or dataset?)", map_dir)
@@ -241,17 +236,18 @@ def prepare_scenes(args, log: Callable[[str], None] = print
 
 
 def map_info(ctx: SceneCtx) -> dict[str, Any]:
-    """What the JSON records about a map: folder, configs, training stats, sizes."""
+    """What the JSON records about a map: folder, config values, training stats, sizes."""
+    from vrs_jax import configio, maps
+
     m = ctx.m
-    stats = m.meta.get("stats", {})
-    return {"map_dir": str(ctx.map_dir), "pipeline_config": dataclasses.asdict(m.pcfg),
-            "nerf_config": m.ilm.config.to_dict(), "egm_config": m.egm_cfg.name,
+    stats = maps.read_stats(ctx.map_dir)
+    return {"map_dir": str(ctx.map_dir), "map_config": configio.to_dict(m.config),
             "n_references": m.egm.num_images, "n_points3d": m.egm.num_points,
             "k_max": m.egm.k_max,
             "mean_keypoints_per_image": float(np.asarray(m.egm.kp_mask).sum(1).mean()),
             "n_queries_used": len(ctx.queries), "n_queries_scene": int(ctx.scene.is_query.sum()),
             "nerf_training": {k: v for k, v in stats.get("ilm", {}).items() if k != "history"},
-            "scene": ctx.spec.note}
+            "map_bytes": maps.map_bytes(ctx.map_dir), "scene": ctx.spec.note}
 
 
 # ----------------------------------------------------------------------------- localization
@@ -259,18 +255,20 @@ def map_info(ctx: SceneCtx) -> dict[str, Any]:
 
 def patch_config(ctx: SceneCtx, size: int | None = None, mode: str | None = None):
     """The map's patch config with another size P / mode (render mode may change them)."""
-    p = ctx.m.egm_cfg.features.patches
+    p = ctx.m.config.features.patches
     over = {k: v for k, v in (("size", size), ("mode", mode)) if v is not None}
     return dataclasses.replace(p, **over) if over else p
 
 
-def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, **overrides):
-    """pipeline.localize_config with an optional patch size P (render mode only)."""
-    from vrs_jax import pipeline
+def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, config: str | None = None,
+                 **overrides):
+    """The named localize config for ``mode`` ("render"/"real"), with an optional patch
+    size P (render mode only)."""
+    from vrs_jax import localize
 
-    if mode == "render" and size is not None:
+    if mode == "render" and size is not None and size != patch_config(ctx).size:
         overrides["patches"] = patch_config(ctx, size)
-    return pipeline.localize_config(ctx.m.pcfg, ctx.m.egm_cfg, mode, **overrides)
+    return localize.get_config(config or ctx.m.config.name, source=mode, **overrides)
 
 
 def _file_stamp(p: Path) -> list:
@@ -280,8 +278,8 @@ def _file_stamp(p: Path) -> list:
 
 def map_stamp(map_dir: Path) -> list:
     d = Path(map_dir)
-    return [_file_stamp(d / "ilm.npz"), _file_stamp(d / "egm" / "egm.npz"),
-            _file_stamp(d / "egm_baseline" / "egm.npz")]
+    return [_file_stamp(d / n) for n in ("map.json", "egm.npz", "ilm.npz", "descriptors.npz")
+            if (d / n).is_file()]
 
 
 _SOURCE_HASH: str | None = None
@@ -300,57 +298,63 @@ def source_hash() -> str:
     return _SOURCE_HASH
 
 
-def run_tag(cfg) -> str:
+def run_tag(ctx: SceneCtx, cfg) -> str:
+    p = cfg.patches or patch_config(ctx)
+    lit = "-literal" if p.mode == "literal" else ""
+    if cfg.source == "real":
+        return f"real_P{p.size}{lit}_k{cfg.top_k}"
     sampler = "dg" if cfg.depth_guided else "full"
-    lit = "-literal" if cfg.patches.mode == "literal" else ""
-    if cfg.mode == "gt":
-        return f"gt_P{cfg.patches.size}{lit}_k{cfg.top_k}"
-    return f"render_P{cfg.patches.size}{lit}_{sampler}_k{cfg.top_k}"
+    return f"render_P{p.size}{lit}_{sampler}_k{cfg.top_k}"
 
 
 def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
                  progress: bool = True, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Localize the scene's queries with ``cfg`` (or reuse a matching record).
 
-    Returns pipeline.summarize's dict plus ``per_query`` (names, t_err_m, R_err_deg (inf for
-    failures), success, fallback, inliers, matches), ``localize_s_per_query`` (sum of the
-    median stage times), ``wall_s``, ``measured_at``, ``reused`` and ``record``.
+    Returns :func:`vrs_jax.eval.report.summarize`'s dict plus ``per_query`` (names, t_err_m,
+    R_err_deg (inf / 180 for failures), success, fallback, inliers, matches),
+    ``localize_s_per_query`` (sum of the median stage times), ``wall_s``, ``measured_at``,
+    ``reused`` and ``record``.
     """
-    from vrs_jax import pipeline
     from vrs_jax.eval import metrics
+    from vrs_jax.eval.report import summarize
+    from vrs_jax.localize import STAGE_NAMES
+    from vrs_jax.localize.batch import localize_scene
 
     key = {"version": RUNS_VERSION, "map": map_stamp(ctx.map_dir), "cfg": repr(cfg),
            "queries": list(ctx.queries.names), "source": source_hash()}
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
-    path = Path(work) / "runs" / ctx.name / f"{run_tag(cfg)}_{digest}.json"
+    tag = run_tag(ctx, cfg)
+    path = Path(work) / "runs" / ctx.name / f"{tag}_{digest}.json"
     if not fresh and path.is_file():
         try:
             doc = json.loads(path.read_text())
         except json.JSONDecodeError:
             doc = None
         if doc is not None and doc.get("key") == key:
-            log(f"[{ctx.name}] {run_tag(cfg)}: reusing {path} ({doc['summary']['measured_at']})")
+            log(f"[{ctx.name}] {tag}: reusing {path} ({doc['summary']['measured_at']})")
             out = doc["summary"]
             out["per_query"]["t_err_m"] = _inf(out["per_query"]["t_err_m"])
-            out["per_query"]["R_err_deg"] = _inf(out["per_query"]["R_err_deg"])
+            out["per_query"]["R_err_deg"] = _inf(out["per_query"]["R_err_deg"], 180.0)
             return {**out, "reused": True, "record": str(path)}
     t0 = time.perf_counter()
-    results, info = pipeline.localize_queries(ctx.m, ctx.queries, cfg, progress=progress)
+    results, info = localize_scene(ctx.m, ctx.queries, cfg, progress=progress)
     wall = time.perf_counter() - t0
-    s = pipeline.summarize(ctx.queries, results, info, ctx.m, cfg, ctx.map_dir)
+    s = summarize(ctx.queries, results, info, ctx.m, cfg, ctx.map_dir)
     q = ctx.queries
-    R = np.stack([np.asarray(r.R, np.float64) for r in results])
-    t = np.stack([np.asarray(r.t, np.float64) for r in results])
-    dt, dr = metrics.pose_errors(R, t, q.R, q.t, has_estimate=q.has_pose)
+    has = np.array([r is not None for r in results]) & np.asarray(q.has_pose, bool)
+    R = np.stack([np.asarray(r.R, np.float64) if r is not None else np.eye(3)
+                  for r in results])
+    t = np.stack([np.asarray(r.t, np.float64) if r is not None else np.zeros(3)
+                  for r in results])
+    dt, dr = metrics.pose_errors(R, t, q.R, q.t, has_estimate=has)
     s["per_query"] = {
         "names": list(q.names), "t_err_m": dt.tolist(), "R_err_deg": dr.tolist(),
-        "success": [bool(r.success) for r in results],
-        "fallback": [bool(r.fallback) for r in results],
-        "inliers": [int(r.n_inliers) for r in results],
-        "matches": [int(r.n_matches) for r in results]}
-    from vrs_jax.localize.localize import STAGES
-
-    s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGES))
+        "success": [bool(r is not None and r.success) for r in results],
+        "fallback": [bool(r is not None and r.fallback) for r in results],
+        "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
+        "matches": [int(r.n_matches) if r is not None else 0 for r in results]}
+    s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
     s["wall_s"] = wall
     s["measured_at"] = now()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -358,8 +362,9 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     return {**s, "reused": False, "record": str(path)}
 
 
-def _inf(xs: list) -> list[float]:
-    return [math.inf if x is None else float(x) for x in xs]
+def _inf(xs: list, missing: float = math.inf) -> list[float]:
+    """Errors read back from JSON (where inf was written as null)."""
+    return [missing if x is None else float(x) for x in xs]
 
 
 # ----------------------------------------------------------------------------- timing
@@ -421,16 +426,10 @@ def base_doc(benchmark: str, args: argparse.Namespace, argv: list[str] | None
 
 
 def write_json(path: str | Path, doc: dict) -> Path:
-    """Strict JSON (non-finite numbers as null), written atomically (tmp, then rename)."""
-    from vrs_jax.eval import metrics
+    """Strict JSON (non-finite numbers as null), written atomically."""
+    from vrs_jax import fileio
 
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(metrics.json_ready(doc), indent=1, allow_nan=False,
-                              default=str) + "\n")
-    os.replace(tmp, p)
-    return p
+    return fileio.write_json(path, doc)
 
 
 # ----------------------------------------------------------------------------- tables

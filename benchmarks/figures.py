@@ -13,13 +13,13 @@
   lines join the PnP inliers, red ones the other matches; below, pairs of query patch and
   rendered patch for up to 12 inliers. Made by running localize's stages one by one
   (retrieve, render_candidate, describe, match_candidates, lift, estimate_pose).
-  ``matches_SCENE_gt.png`` is the same for the baseline (gt mode: the real reference
+  ``matches_SCENE_real.png`` is the same for the baseline (real mode: the real reference
   patches, read from the reference image).
 - ``clusters_SCENE.png``: scene division of the reference cameras (top view: the two
   principal axes of the camera centres) into C clusters, a uniform grid vs K-means
   (vrs_jax.nerf.clusters, with the border images each K-means cluster shares ringed).
 - ``cumulative_errors.png``: fraction of queries under a translation / rotation error, for
-  render (VRS-NeRF) and gt (baseline) mode on each scene of --scenes. Uses the run records of
+  render (VRS-NeRF) and real (baseline) mode on each scene of --scenes. Uses the run records of
   ``benchmarks.localize`` when they match (same map, config, queries and code), else
   localizes the queries first.
 
@@ -48,16 +48,8 @@ from vrs_jax import geometry  # noqa: E402
 from vrs_jax.data.images import read_gray, read_image  # noqa: E402
 from vrs_jax.errors import VrsError, cli_main  # noqa: E402
 from vrs_jax.eval import metrics  # noqa: E402
-from vrs_jax.features.descriptor import describe  # noqa: E402
 from vrs_jax.features.patches import extract_patches, patch_grid  # noqa: E402
-from vrs_jax.localize.localize import (  # noqa: E402
-    lift,
-    match_candidates,
-    render_candidate,
-    retrieve,
-)
-from vrs_jax.localize.pnp import estimate_pose  # noqa: E402
-from vrs_jax.localize.query import prepare_query  # noqa: E402
+from vrs_jax.localize import prepare_query, run_stages  # noqa: E402
 from vrs_jax.nerf import clusters as clusters_lib  # noqa: E402
 from vrs_jax.nerf import config as nerf_config  # noqa: E402
 from vrs_jax.nerf.render import psnr, render_view  # noqa: E402
@@ -78,8 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clusters", type=int, default=4, help="clusters C of the cluster figure")
     p.add_argument("--query", type=int, default=0,
                    help="query (index among the queries used) of the match figure")
-    p.add_argument("--match-modes", default="render,gt",
-                   help="match figures to make: render (VRS-NeRF) and/or gt (baseline)")
+    p.add_argument("--match-modes", default="render,real",
+                   help="match figures to make: render (VRS-NeRF) and/or real (baseline)")
     p.add_argument("--paste", default="inliers", choices=["inliers", "matched", "all"],
                    help="patches pasted on the reference image in the match figure (the "
                         "matched ones when there are no inliers)")
@@ -117,34 +109,19 @@ def _real_image(scene, j: int) -> np.ndarray:
 
 
 def match_stages(ctx, q, cfg):
-    """localize's stages one by one (jitted together): what the match figure draws.
+    """localize's stages (the one definition, jitted together): what the match figure draws.
 
-    Returns dict(idx [k], gray [k, K_max, P, P] rendered patches (None in gt mode), j [k, Kq],
-    ok [k, Kq] (2D-3D links fed to PnP), inliers [k, Kq], success, R, t).
+    Returns dict(idx [k], gray [k, K_max, P, P] rendered patches (None in real mode),
+    j [k, Kq], ok [k, Kq] (distinct 2D-3D links fed to PnP), inliers [k, Kq], success, R, t).
     """
-    gt = cfg.mode == "gt"
-    egm = ctx.m.egm if gt else ctx.m.egm.without_local_descriptors()
-
-    @jax.jit
-    def run(ilm, egm, q):
-        idx = retrieve(egm, q, cfg)
-        if gt:
-            gray, desc = None, egm.local_desc[idx]
-        else:
-            gray = jax.lax.map(lambda i: render_candidate(ilm, egm, i, cfg), idx)
-            desc = describe(gray, cfg.descriptor)
-        j, valid = match_candidates(q, desc, egm.kp_mask[idx], cfg)
-        uv, X, ok = lift(q, egm, idx, j, valid)
-        pose = estimate_pose(uv, X, ok, q.K, cfg.pnp)
-        return idx, gray, j, ok, pose
-
-    idx, gray, j, ok, pose = jax.device_get(run(None if gt else ctx.m.ilm, egm, q))
-    k = len(idx)
-    return {"idx": np.asarray(idx), "gray": None if gt else np.asarray(gray),
-            "j": np.asarray(j),
-            "ok": np.asarray(ok).reshape(k, -1), "inliers": np.asarray(pose.inliers).reshape(
-                k, -1), "success": bool(pose.success), "R": np.asarray(pose.R),
-            "t": np.asarray(pose.t)}
+    st = jax.device_get(jax.jit(run_stages, static_argnames=("cfg",))(ctx.m, q, cfg))
+    k = len(st["idx"])
+    res = st["result"]
+    return {"idx": np.asarray(st["idx"]),
+            "gray": np.asarray(st["gray"]) if "gray" in st else None,
+            "j": np.asarray(st["j"]), "ok": np.asarray(st["ok"]).reshape(k, -1),
+            "inliers": np.asarray(st["inliers"]).reshape(k, -1),
+            "success": bool(res.success), "R": np.asarray(res.R), "t": np.asarray(res.t)}
 
 
 def paste_patches(base: np.ndarray, patches: np.ndarray, positions: np.ndarray,
@@ -179,8 +156,8 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     if not 0 <= query < len(qs):
         raise VrsError(f"--query {query} out of range: {len(qs)} queries", ctx.scene.root)
     size = tuple(int(s) for s in qs.sizes[query])
-    q = prepare_query(read_gray(qs.image_paths[query], size=size), qs.K[query],
-                      qs.dist[query], ctx.m.egm.vocab, cfg)
+    q = prepare_query(ctx.m, read_gray(qs.image_paths[query], size=size), qs.K[query],
+                      qs.dist[query], cfg)
     st = match_stages(ctx, q, cfg)
     n_inl = st["inliers"].sum(1)
     c = int(np.argmax(n_inl)) if n_inl.any() else int(np.argmax(st["ok"].sum(1)))
@@ -188,11 +165,12 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     egm = ctx.m.egm
     kp_ref = np.asarray(egm.keypoints[i])
     mask_ref = np.asarray(egm.kp_mask[i])
-    positions, _ = patch_grid(kp_ref, cfg.patches)
+    patch_cfg = common.patch_config(ctx)
+    positions, _ = patch_grid(kp_ref, patch_cfg)
     ref_real = _real_image(ctx.scene, _scene_index(ctx.scene, egm.names[i]))
-    if mode == "gt":  # the baseline's patches: read from the real reference image
+    if mode == "real":  # the baseline's patches: read from the real reference image
         gray_ref = ref_real @ np.asarray([0.299, 0.587, 0.114], np.float32)
-        patches = np.asarray(extract_patches(gray_ref, kp_ref, cfg.patches))
+        patches = np.asarray(extract_patches(gray_ref, kp_ref, patch_cfg))
     else:
         patches = st["gray"][c]
     valid = np.flatnonzero(mask_ref)
@@ -223,7 +201,7 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     strip = None
     if len(pairs):
         gray_q = read_gray(qs.image_paths[query], size=size)
-        qp = np.asarray(extract_patches(gray_q, np.asarray(q.keypoints)[pairs], cfg.patches))
+        qp = np.asarray(extract_patches(gray_q, np.asarray(q.keypoints)[pairs], patch_cfg))
         strip = pair_strip(qp, patches[st["j"][c][pairs]])
     h_strip = 12.0 * strip.shape[0] / strip.shape[1] if strip is not None else 0.3
     fig = plt.figure(figsize=(12, 12 * aspect + h_strip + 1.3))
@@ -250,7 +228,7 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
         dt, dr = float(e_t[0]) * 100.0, float(e_r[0])
     err = f"pose error {dt:.1f} cm, {dr:.2f} deg" if dt is not None else (
         "pose: PnP failed (fallback)" if not st["success"] else "")
-    P = cfg.patches.size
+    P = patch_cfg.size
     what = "NeRF-rendered" if mode == "render" else "real (baseline)"
     ax.set_title(f"query {qs.names[query]} (left) vs {P}x{P} {what} patches of "
                  f"{egm.names[i]} (right, pasted on the dimmed real image)\n"
@@ -310,20 +288,21 @@ def fig_render(ctx, out_dir: Path, ref_idx: list[int]) -> tuple[Path, dict]:
         j = _scene_index(ctx.scene, egm.names[i])
         real = _real_image(ctx.scene, j)
         size = (int(egm.sizes[i, 0]), int(egm.sizes[i, 1]))
-        out = render_view(ilm, int(egm.cluster[i]), np.asarray(egm.K[i]), np.asarray(egm.R[i]),
+        c = int(ilm.image_cluster[i])
+        out = render_view(ilm, c, np.asarray(egm.K[i]), np.asarray(egm.R[i]),
                           np.asarray(egm.t[i]), size, float(ilm.near[i]), float(ilm.far[i]),
                           np.asarray(egm.dist[i]))
         rgb = np.clip(out["rgb"], 0, 1)
         p = float(psnr(rgb, real))
         diff = np.abs(rgb - real).mean(-1)
-        for ax, img, title in ((axes[r, 0], rgb, f"NeRF render (cluster {int(egm.cluster[i])})"),
+        for ax, img, title in ((axes[r, 0], rgb, f"NeRF render (cluster {c})"),
                                (axes[r, 1], real, f"real {egm.names[i]}"),
                                (axes[r, 2], diff, f"|difference|, PSNR {p:.1f} dB")):
             ax.imshow(img, cmap="magma" if img.ndim == 2 else None,
                       vmin=0, vmax=0.5 if img.ndim == 2 else None)
             ax.set_title(title, fontsize=9)
             ax.axis("off")
-        rows.append({"reference": egm.names[i], "psnr": p, "cluster": int(egm.cluster[i])})
+        rows.append({"reference": egm.names[i], "psnr": p, "cluster": c})
     fig.suptitle(f"{ctx.name}: reference images rendered by the map's NeRF "
                  f"({ilm.config.name} config) vs real", fontsize=10)
     path = save(fig, out_dir / f"render_vs_real_{ctx.name}.png")
@@ -414,7 +393,7 @@ def top_view_project(centers: np.ndarray, points: np.ndarray) -> np.ndarray:
 def fig_curves(runs: dict[tuple[str, str], dict], out_dir: Path, max_cm: float,
                max_deg: float) -> tuple[Path, dict]:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
-    styles = {"render": "-", "gt": "--"}
+    styles = {"render": "-", "real": "--"}
     colors = {}
     info = {}
     for (scene, mode), s in runs.items():
@@ -422,7 +401,7 @@ def fig_curves(runs: dict[tuple[str, str], dict], out_dir: Path, max_cm: float,
         pq = s["per_query"]
         t_cm = np.asarray(pq["t_err_m"], np.float64) * 100.0
         r_deg = np.asarray(pq["R_err_deg"], np.float64)
-        label = f"{scene} / {'VRS-NeRF (render)' if mode == 'render' else 'baseline (gt)'}"
+        label = f"{scene} / {'VRS-NeRF (render)' if mode == 'render' else 'baseline (real patches)'}"
         for ax, e, mx in ((axes[0], t_cm, max_cm), (axes[1], r_deg, max_deg)):
             x, y = metrics.cumulative_curve(e, max_error=mx)
             ax.step(x, 100.0 * y, where="post", ls=styles[mode], color=col, label=label)
@@ -457,8 +436,8 @@ def main(argv: list[str] | None = None) -> int:
     if bad or not which:
         raise VrsError(f"--figures must list some of {', '.join(FIGURES)}, got {args.figures!r}")
     match_modes = [m.strip() for m in args.match_modes.split(",") if m.strip()]
-    if not match_modes or any(m not in ("render", "gt") for m in match_modes):
-        raise VrsError(f"--match-modes must list render and/or gt, got {args.match_modes!r}")
+    if not match_modes or any(m not in ("render", "real") for m in match_modes):
+        raise VrsError(f"--match-modes must list render and/or real, got {args.match_modes!r}")
     out = Path(args.out)
     doc = common.base_doc("figures", args, argv)
     paths: list[Path] = []
@@ -497,7 +476,7 @@ def main(argv: list[str] | None = None) -> int:
                     p, info[f"render_{ctx.name}"] = fig_render(ctx, out, views)
                     paths.append(p)
             if "curves" in which:
-                for mode in ("render", "gt"):
+                for mode in ("render", "real"):
                     runs[(ctx.name, mode)] = common.localize_run(
                         ctx, common.localize_cfg(ctx, mode), args.work, fresh=args.fresh,
                         progress=not args.quiet)

@@ -1,20 +1,17 @@
-"""Localization benchmark: per-stage latency and accuracy, VRS-NeRF (render) vs baseline (gt).
+"""Localization benchmark: per-stage latency and accuracy, VRS-NeRF (render) vs the
+real-patch baseline (real), on the same split.
 
-    python -m benchmarks.localize [--scenes synthetic,fern,lego] [--json FILE] [--work DIR]
+    python -m benchmarks.localize [--scenes synthetic,fern,lego,scan24] [--json FILE]
 
 For each scene, every query is localized in ``render`` mode (descriptors of NeRF-rendered
-patches: VRS-NeRF) and ``gt`` mode (descriptors of the real reference patches stored in the
-baseline map: the hierarchical baseline), with the map's patch size and the config's sampler
+patches: VRS-NeRF) and ``real`` mode (the map's stored descriptors of the real reference
+patches: the hierarchical baseline), with the map's patch size and the config's sampler
 (depth-guided by default; --full-sampling renders coarse + fine). Reported per scene and
-mode: median translation / rotation error, recall at the DESIGN.md thresholds, the median
-time per query of each stage (retrieval, rays, render, describe, matching, RANSAC,
-refinement; query preparation separately; a warm-up query compiles first), rays and NeRF
-evaluations per query, and map bytes.
-
-Defaults: all three scenes (the issue's table), config cpu-small, maps built once into
---work (NeRF budgets: synthetic 5, fern 3, lego 3 minutes): ~4 minutes on 2 CPU cores when
-the maps exist, plus ~13 minutes the first time to build them. Each run is measured afresh
-and recorded in WORK/runs/ (the ablation and figures reuse those records).
+mode: median translation / rotation error, recall at hloc's thresholds and relative to the
+scene size, fallbacks, distinct inliers, the median time per query of each stage (retrieval,
+render, describe, matching, RANSAC, refinement; query preparation separately; a warm-up query
+compiles first), rays and NeRF evaluations per query, and map bytes. Each run is measured
+afresh and recorded in WORK/runs/ (the ablation and figures reuse those records).
 """
 
 from __future__ import annotations
@@ -24,9 +21,9 @@ import dataclasses
 
 from benchmarks import common
 from vrs_jax.errors import cli_main
-from vrs_jax.localize.localize import STAGES
+from vrs_jax.localize import STAGE_NAMES as STAGES
 
-MODES = ("render", "gt")
+MODES = ("render", "real")
 RECALL_KEYS = ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50cm_5deg",
                "500cm_10deg")
 
@@ -34,8 +31,8 @@ RECALL_KEYS = ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmarks.localize", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    common.add_scene_args(p, default_scenes=("synthetic", "fern", "lego"))
-    p.add_argument("--modes", default="render,gt", help="comma-separated: render, gt")
+    common.add_scene_args(p, default_scenes=("synthetic", "fern", "lego", "scan24"))
+    p.add_argument("--modes", default="render,real", help="comma-separated: render, real")
     p.add_argument("--full-sampling", action="store_true",
                    help="render mode: coarse + fine sampling instead of the depth-guided "
                         "interval (~6x slower rendering on cpu-small)")
@@ -70,7 +67,7 @@ def accuracy_table(rows: list[dict]) -> str:
           *(common.pct(r["recall"][k] if r["recall"] else None)
             for k in ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg")),
           r["n_fallback"], common.fmt(r["map_bytes"]["total"] / 1e6, 3)] for r in rows],
-        title="Accuracy (render = VRS-NeRF, rendered patches; gt = baseline, real patches)")
+        title="Accuracy (render = VRS-NeRF, rendered patches; real = baseline, real patches)")
 
 
 def latency_table(rows: list[dict]) -> str:

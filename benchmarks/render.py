@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import time
 
 import jax
@@ -38,15 +37,10 @@ import numpy as np
 from benchmarks import common
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError, cli_main
-from vrs_jax.features.patches import PATCH_SIZES, patch_grid
 from vrs_jax.features import rays as rays_mod
-from vrs_jax.localize.localize import (
-    nerf_evals_per_ray,
-    rays_per_query,
-    render_candidate,
-    retrieve,
-)
-from vrs_jax.localize.query import prepare_query
+from vrs_jax.features.patches import PATCH_SIZES, patch_grid
+from vrs_jax.localize import prepare_query, run_stages
+from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query, render_reference
 from vrs_jax.nerf.render import image_renderer
 
 
@@ -70,22 +64,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def patch_renderer(cfg):
-    """Jitted ``fn(ilm, egm, idx) -> grey patches [k, K_max, P, P]`` (the localize stage)."""
-    def fn(ilm, egm, idx):
-        return jax.lax.map(lambda i: render_candidate(ilm, egm, i, cfg), idx)
+def patch_renderer(cfg, patches):
+    """Jitted ``fn(map, idx) -> grey patches [k, K_max, P, P]`` (the localize render stage)."""
+    def fn(m, idx):
+        return jax.lax.map(lambda i: render_reference(m, i, patches, cfg), idx)
     return jax.jit(fn)
 
 
-def truncate_keypoints(egm, n: int):
-    """The EGM with only the first n keypoint slots of every image (valid ones come first)."""
-    return egm.replace(keypoints=egm.keypoints[:, :n], point_idx=egm.point_idx[:, :n],
-                       kp_mask=egm.kp_mask[:, :n], local_desc=None)
+def truncate_keypoints(m, n: int):
+    """The map with only the first n keypoint slots of every image (valid ones come first)."""
+    egm = m.egm
+    return m.replace(egm=egm.replace(keypoints=egm.keypoints[:, :n],
+                                     point_idx=egm.point_idx[:, :n],
+                                     kp_mask=egm.kp_mask[:, :n], local_desc=None))
 
 
-def literal_pixels(egm, idx: np.ndarray, cfg) -> int:
+def literal_pixels(egm, idx: np.ndarray, patches) -> int:
     """Distinct whole pixels of the paper-literal patches of images ``idx`` (rays needed)."""
-    lit = dataclasses.replace(cfg.patches, mode="literal")
+    lit = dataclasses.replace(patches, mode="literal")
     total = 0
     for i in idx:
         pos, _ = patch_grid(jnp.asarray(egm.keypoints[i]), lit)
@@ -107,7 +103,7 @@ def time_full_images(m, idx: np.ndarray, repeats: int) -> tuple[float, float]:
         w, h = (int(s) for s in np.asarray(egm.sizes[i]))
         dist = np.asarray(egm.dist[i])
         use_dist = bool(np.any(dist))
-        args = (ilm.fields, jnp.int32(int(egm.cluster[i])), f32(egm.K[i]), f32(egm.R[i]),
+        args = (ilm.fields, jnp.int32(int(ilm.image_cluster[i])), f32(egm.K[i]), f32(egm.R[i]),
                 f32(egm.t[i]), f32(dist), jnp.float32(ilm.near[i]), jnp.float32(ilm.far[i]))
         key = (w, h, use_dist)
         if key not in compiled:
@@ -122,33 +118,35 @@ def time_full_images(m, idx: np.ndarray, repeats: int) -> tuple[float, float]:
 
 def query_comparison(ctx, q, idx: np.ndarray, args) -> dict:
     """Measurement 1: a query's patches vs the same k reference images in full."""
-    m = ctx.m
-    egm = m.egm.without_local_descriptors()
+    m = ctx.m.without_descriptors()
+    egm = m.egm
     cfg = common.localize_cfg(ctx, "render")
-    P = cfg.patches.size
+    patches = common.patch_config(ctx)
+    literal = dataclasses.replace(patches, mode="literal")
+    P = patches.size
     valid = np.asarray(egm.kp_mask)[idx].sum(1)
     sizes = np.asarray(egm.sizes)[idx]
     pixels = int(np.prod(sizes, axis=1).sum())
     patch_rays = int(valid.sum()) * P * P
-    lit_rays = literal_pixels(egm, idx, cfg)
-    full_epr = nerf_evals_per_ray(m.ilm, dataclasses.replace(cfg, depth_guided=False))
+    lit_rays = literal_pixels(egm, idx, patches)
+    full_epr = nerf_evals_per_ray(m, dataclasses.replace(cfg, depth_guided=False))
     variants = [
-        ("patches, depth-guided", dataclasses.replace(cfg, depth_guided=True), patch_rays),
-        ("patches, coarse+fine", dataclasses.replace(cfg, depth_guided=False), patch_rays),
+        ("patches, depth-guided", dataclasses.replace(cfg, depth_guided=True), patches,
+         patch_rays),
+        ("patches, coarse+fine", dataclasses.replace(cfg, depth_guided=False), patches,
+         patch_rays),
         ("literal patches (distinct pixels), depth-guided",
-         dataclasses.replace(cfg, depth_guided=True,
-                             patches=dataclasses.replace(cfg.patches, mode="literal")),
-         lit_rays),
+         dataclasses.replace(cfg, depth_guided=True), literal, lit_rays),
     ]
     idx_j = jnp.asarray(idx, jnp.int32)
     rows = []
-    for label, c, rays in variants:
-        sec, comp, _ = common.compile_and_time(patch_renderer(c), m.ilm, egm, idx_j,
+    for label, c, pc, rays in variants:
+        sec, comp, _ = common.compile_and_time(patch_renderer(c, pc), m, idx_j,
                                                repeats=args.repeats)
-        epr = nerf_evals_per_ray(m.ilm, c)
+        epr = nerf_evals_per_ray(m, c)
         rows.append({"method": label, "rays": rays, "nerf_evals_per_ray": epr,
                      "nerf_evals": rays * epr, "seconds": sec, "compile_s": comp,
-                     "depth_guided": c.depth_guided, "patch_mode": c.patches.mode})
+                     "depth_guided": c.depth_guided, "patch_mode": pc.mode})
     full = {"method": "full images, coarse+fine", "rays": pixels,
             "nerf_evals_per_ray": full_epr, "nerf_evals": pixels * full_epr,
             "seconds": None, "compile_s": None, "depth_guided": False, "patch_mode": None}
@@ -169,28 +167,28 @@ def query_comparison(ctx, q, idx: np.ndarray, args) -> dict:
 
 def sweep(ctx, idx: np.ndarray, args) -> list[dict]:
     """Measurement 2: ms per patch etc. for each P and sampler."""
-    m = ctx.m
-    egm = m.egm.without_local_descriptors()
-    sub = truncate_keypoints(egm, args.sweep_keypoints)
+    m = ctx.m.without_descriptors()
+    sub = truncate_keypoints(m, args.sweep_keypoints)
     top1 = jnp.asarray(idx[:1], jnp.int32)
-    n_patches = int(np.asarray(sub.kp_mask)[idx[0]].sum())
+    n_patches = int(np.asarray(sub.egm.kp_mask)[idx[0]].sum())
     if n_patches == 0:
         raise VrsError("the top-1 reference image has no 3D-linked keypoints", ctx.map_dir)
     rows = []
     for P in args.sizes:
         for dg in [s == "dg" for s in samplers(args)]:
             cfg = common.localize_cfg(ctx, "render", P, depth_guided=dg)
-            sec, comp, _ = common.compile_and_time(patch_renderer(cfg), m.ilm, sub, top1,
-                                                   repeats=args.repeats)
-            epr = nerf_evals_per_ray(m.ilm, cfg)
+            sec, comp, _ = common.compile_and_time(
+                patch_renderer(cfg, common.patch_config(ctx, P)), sub, top1,
+                repeats=args.repeats)
+            epr = nerf_evals_per_ray(m, cfg)
             rays = n_patches * P * P
-            rpq = rays_per_query(egm, cfg)
+            rpq = rays_per_query(m, cfg)
             ms_patch = 1000.0 * sec / n_patches
             rows.append({
                 "patch_size": P, "depth_guided": dg,
                 "sampler": f"depth-guided {cfg.narrow_samples}" if dg else
-                           f"coarse+fine {m.ilm.config.num_samples_coarse}"
-                           f"+{m.ilm.config.num_samples_fine}",
+                           f"coarse+fine {m.config.nerf.num_samples_coarse}"
+                           f"+{m.config.nerf.num_samples_fine}",
                 "patches_timed": n_patches, "seconds": sec, "compile_s": comp,
                 "ms_per_patch": ms_patch, "rays_per_s": rays / sec,
                 "nerf_evals_per_ray": epr, "nerf_evals_per_s": rays * epr / sec,
@@ -253,9 +251,9 @@ def main(argv: list[str] | None = None) -> int:
                            ctx.scene.root)
         cfg = common.localize_cfg(ctx, "render")
         size = tuple(int(s) for s in queries.sizes[args.query])
-        q = prepare_query(read_gray(queries.image_paths[args.query], size=size),
-                          queries.K[args.query], queries.dist[args.query], ctx.m.egm.vocab, cfg)
-        idx = np.asarray(jax.jit(functools.partial(retrieve, cfg=cfg))(ctx.m.egm, q))
+        q = prepare_query(ctx.m, read_gray(queries.image_paths[args.query], size=size),
+                          queries.K[args.query], queries.dist[args.query], cfg)
+        idx = np.asarray(run_stages(ctx.m, q, cfg, until="retrieval")["idx"])
         print(f"[{ctx.name}] query {queries.names[args.query]}: top-{len(idx)} "
               f"{[ctx.m.egm.names[i] for i in idx]}")
         comp = query_comparison(ctx, q, idx, args)

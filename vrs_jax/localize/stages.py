@@ -104,7 +104,8 @@ def unique_pairs(qi: Array, pid: Array, ok: Array) -> Array:
 
 def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """Match the query to each candidate and lift to distinct 2D-3D correspondences:
-    uv [k * Kq, 2], X [k * Kq, 3], ok [k * Kq] (each (query keypoint, 3D point) pair once)."""
+    j [k, Kq] matched keypoint slot per candidate, uv [k * Kq, 2], X [k * Kq, 3],
+    ok [k * Kq] (each (query keypoint, 3D point) pair once)."""
     def one(d, dm):
         j, valid, _ = match(q.desc, q.mask, d, dm, cfg.ratio, cfg.mutual)
         return j, valid
@@ -117,7 +118,7 @@ def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     uv = jnp.broadcast_to(q.points2d[None], X.shape[:2] + (2,))
     qi = jnp.broadcast_to(jnp.arange(j.shape[1])[None], j.shape)
     ok = unique_pairs(qi.reshape(-1), pid.reshape(-1), ok.reshape(-1))
-    return {"uv": uv.reshape(-1, 2), "X": X.reshape(-1, 3), "ok": ok}
+    return {"j": j, "uv": uv.reshape(-1, 2), "X": X.reshape(-1, 3), "ok": ok}
 
 
 def ransac(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
@@ -127,7 +128,8 @@ def ransac(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 
 
 def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
-    """LM refinement of the seed, then the fallback to the top-1 reference pose."""
+    """LM refinement of the seed, then the fallback to the top-1 reference pose; also the
+    final inlier mask [k * Kq]."""
     pose = refine_seed(s["R0"], s["t0"], s["inl0"], s["ok_seed"], s["uv"], s["X"], s["ok"],
                        q.K, cfg.pnp)
     top = s["idx"][0]
@@ -136,7 +138,7 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          t=jnp.where(ok, pose.t, m.egm.t[top]), success=ok, fallback=~ok,
                          n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"])
-    return {"result": res}
+    return {"result": res, "inliers": pose.inliers}
 
 
 Stage = Callable[[Map, Query, LocalizeConfig, State], State]
