@@ -401,7 +401,7 @@ def fig_curves(runs: dict[tuple[str, str], dict], out_dir: Path, max_cm: float,
         pq = s["per_query"]
         t_cm = np.asarray(pq["t_err_m"], np.float64) * 100.0
         r_deg = np.asarray(pq["R_err_deg"], np.float64)
-        label = f"{scene} / {'VRS-NeRF (render)' if mode == 'render' else 'baseline (real patches)'}"
+        label = f"{scene} / {'VRS-NeRF (render)' if mode == 'render' else 'real patches'}"
         for ax, e, mx in ((axes[0], t_cm, max_cm), (axes[1], r_deg, max_deg)):
             x, y = metrics.cumulative_curve(e, max_error=mx)
             ax.step(x, 100.0 * y, where="post", ls=styles[mode], color=col, label=label)

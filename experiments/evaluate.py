@@ -1,4 +1,4 @@
-"""Evaluate a results file against a dataset's query ground truth (DESIGN.md section 6).
+"""Evaluate a results file against a dataset's query ground truth (docs/design.md, section 6).
 
     python -m experiments.evaluate --results OUT/results.txt --format 7scenes --root DIR \\
         [--query-every N] [--downscale N] [--opt KEY=VALUE ...] [--json OUT/eval.json]

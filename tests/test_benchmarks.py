@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks import ablation, common, figures, localize, map_size, render
-from vrs_jax import pipeline
+from vrs_jax import maps
 from vrs_jax.features.patches import PatchConfig, extract_patches, patch_grid
 
 ENV_KEYS = {"benchmark", "time_utc", "command", "machine", "device", "versions", "code", "args"}
@@ -26,7 +26,7 @@ def base(tiny_map, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def loaded(tiny_map):
-    return pipeline.load_map(tiny_map)
+    return maps.load_map(tiny_map)
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_localize_benchmark_json(localize_doc, loaded):
     doc = localize_doc
     assert ENV_KEYS <= set(doc) and doc["benchmark"] == "localize"
     assert doc["versions"]["jax"] and doc["machine"]["cpu_count"] >= 1
-    assert [r["mode"] for r in doc["rows"]] == ["render", "gt"]
+    assert [r["mode"] for r in doc["rows"]] == ["render", "real"]
     egm = loaded.egm
     for r in doc["rows"]:
         assert r["n_queries"] == 2 and len(r["per_query"]["t_err_m"]) == 2
@@ -56,14 +56,15 @@ def test_localize_benchmark_json(localize_doc, loaded):
         if r["mode"] == "render":
             # rays per query = k x mean valid keypoints per image x P^2
             mean_valid = np.asarray(egm.kp_mask).sum(1).mean()
-            expect = cfg["top_k"] * mean_valid * cfg["patches"]["size"] ** 2
+            expect = cfg["top_k"] * mean_valid * r["patch_size"] ** 2
             assert r["rays_per_query"] == pytest.approx(expect)
             assert r["nerf_evals_per_query"] == pytest.approx(
                 expect * cfg["narrow_samples"])
             assert r["timing_s"]["render"] > 0
         else:
             assert r["rays_per_query"] == 0 and r["timing_s"]["render"] == 0
-            assert r["map_bytes"]["total"] == r["map_bytes"]["egm"] > 0
+            assert r["map_bytes"]["total"] > r["map_bytes"]["descriptors"] > 0
+            assert r["map_bytes"]["ilm"] == 0
     # the baseline localizes the easy synthetic queries (real patches)
     assert _finite(doc["rows"][1]["median_t_cm"]) and doc["rows"][1]["median_t_cm"] < 5
     assert doc["maps"]["synthetic"]["n_queries_used"] == 2
@@ -77,33 +78,39 @@ def test_ablation_reuses_the_localize_runs(base, localize_doc, tmp_path):
                                  "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     rows = {r["method"]: r for r in doc["rows"]}
-    assert list(rows) == ["render 9x9", "GT (real 9x9)"]
-    # the map's P (9 in the test config) and GT rows are the localize benchmark's runs
-    assert rows["render 9x9"]["reused"] and rows["GT (real 9x9)"]["reused"]
+    assert list(rows) == ["render 9x9", "real 9x9 (GT)"]
+    # the map's P (9 in the test config) and real rows are the localize benchmark's runs
+    assert rows["render 9x9"]["reused"] and rows["real 9x9 (GT)"]["reused"]
     loc = {r["mode"]: r for r in localize_doc["rows"]}
-    for method, mode in (("render 9x9", "render"), ("GT (real 9x9)", "gt")):
+    for method, mode in (("render 9x9", "render"), ("real 9x9 (GT)", "real")):
         assert rows[method]["record"] == loc[mode]["record"]
         assert rows[method]["recall"] == loc[mode]["recall"]
         assert rows[method]["rays_per_query"] == loc[mode]["rays_per_query"]
     assert rows["render 9x9"]["render_s_per_query"] > 0
-    assert rows["GT (real 9x9)"]["render_s_per_query"] == 0
+    assert rows["real 9x9 (GT)"]["render_s_per_query"] == 0
 
 
-def test_map_size_parts_add_up(base, tmp_path):
+def test_map_size_parts_add_up(base, tiny_map, tmp_path):
     out = tmp_path / "map_size.json"
     assert map_size.main(base + ["--scenes", "synthetic", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     s = doc["sizes"]["synthetic"]
-    for kind in ("vrs", "baseline"):
-        parts = sum(v for k, v in s[kind].items() if k != "total")
-        assert parts == s[kind]["total"] > 0
-    assert s["vrs"]["local descriptors"] == 0 and s["vrs"]["NeRF weights"] > 0
-    assert s["baseline"]["local descriptors"] > 0 and s["baseline"]["NeRF weights"] == 0
-    assert s["ratio_baseline_over_vrs"] == pytest.approx(
-        s["baseline"]["total"] / s["vrs"]["total"])
+    d = tiny_map
+    size = lambda n: (d / n).stat().st_size  # noqa: E731
+    assert s["vrs"] == size("map.json") + size("egm.npz") + size("ilm.npz")
+    assert s["descriptor_maps"]["float16"] == (size("map.json") + size("egm.npz")
+                                               + size("descriptors.npz"))
+    base_b = size("map.json") + size("egm.npz")
+    dim = s["desc_dim"]
+    assert s["descriptor_maps"]["uint8"] == base_b + s["n_keypoints"] * dim
+    assert s["descriptor_maps"]["float32"] == base_b + 4 * s["n_keypoints"] * dim
+    assert sum(s["egm_parts"].values()) == s["egm"]
+    assert s["ratio"]["uint8"] == pytest.approx(s["descriptor_maps"]["uint8"] / s["vrs"])
     cfgs = {r["config"]: r for r in doc["nerf_configs"]}
     assert cfgs["paper"]["bytes_per_cluster"] == 4 * cfgs["paper"]["params"]
     assert cfgs["paper"]["params"] > cfgs["cpu-small"]["params"] > cfgs["test"]["params"]
+    chess = {r["scene"]: r for r in doc["scaling"]}["7scenes chess"]
+    assert chess["images"] == 4000 and chess["ratio_float16"] > chess["ratio_uint8"] > 1
 
 
 def test_render_benchmark_counts(base, loaded, tmp_path):
@@ -125,7 +132,7 @@ def test_render_benchmark_counts(base, loaded, tmp_path):
     rows = {r["method"]: r for r in c["rows"]}
     dg, cf = rows["patches, depth-guided"], rows["patches, coarse+fine"]
     full = rows["full images, coarse+fine"]
-    cfg = loaded.ilm.config
+    cfg = loaded.config.nerf
     assert cf["nerf_evals_per_ray"] == full["nerf_evals_per_ray"] == (
         cfg.num_samples_coarse + cfg.num_samples_fine)
     assert dg["nerf_evals"] == dg["rays"] * dg["nerf_evals_per_ray"]
@@ -143,18 +150,18 @@ def test_render_benchmark_counts(base, loaded, tmp_path):
 def test_figures_written(base, localize_doc, tmp_path):
     out = tmp_path / "fig"
     assert figures.main(base + ["--out", str(out), "--cluster-scenes", "synthetic",
-                                "--views", "1", "--match-modes", "render,gt"]) == 0
+                                "--views", "1", "--match-modes", "render,real"]) == 0
     doc = json.loads((out / "figures.json").read_text())
     names = sorted(p.split("/")[-1] for p in doc["figures"])
     assert names == ["clusters_synthetic.png", "cumulative_errors.png",
-                     "matches_synthetic.png", "matches_synthetic_gt.png",
+                     "matches_synthetic.png", "matches_synthetic_real.png",
                      "render_vs_real_synthetic.png"]
     for p in doc["figures"]:
         img = cv2.imread(p)
         assert img is not None and img.shape[0] > 200 and img.shape[1] > 400
         assert img.std() > 10  # not blank
     info = doc["info"]
-    assert info["matches_synthetic_gt"]["inliers"] >= 12  # the baseline matches this query
+    assert info["matches_synthetic_real"]["inliers"] >= 12  # the baseline matches this query
     assert sum(info["clusters_synthetic"]["kmeans_counts"]) == 24
     assert sum(info["clusters_synthetic"]["grid_counts"]) == 24
     assert _finite(info["render_synthetic"]["views"][0]["psnr"])
@@ -218,6 +225,7 @@ def test_bad_arguments_and_missing_data(tmp_path, capsys):
                           "--work", str(tmp_path), "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["sizes"] == {} and doc["skipped"][0]["scene"] == "fern"
+    assert doc["scaling"] == []
 
 
 def test_table_and_number_formatting():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 
 import numpy as np
@@ -43,7 +42,7 @@ def _depth_rel_errors(scene, egm, depth_K=None, max_rel=0.05):
 @pytest.fixture(scope="module")
 def synthetic(small_synthetic_scene):
     scene = load_scene("7scenes", small_synthetic_scene)
-    cfg = dataclasses.replace(B.get_config("cpu-small"), baseline=True)
+    cfg = B.get_config("cpu-small")
     egm, stats = B.build_egm(scene, cfg, progress=False)
     return scene, egm, stats
 
@@ -79,14 +78,11 @@ def test_synthetic_baseline_descriptors_are_the_describe_path(synthetic):
     np.testing.assert_allclose(np.asarray(egm.local_desc[i, :c]), d, atol=1e-4)
 
 
-def test_synthetic_map_size_vrs_vs_baseline(synthetic):
+def test_synthetic_map_keeps_real_descriptors_apart(synthetic):
     _, egm, stats = synthetic
-    assert stats["bytes"]["local descriptors"] > 0
-    assert stats["bytes_baseline_map"] == stats["bytes"]["total"]
-    assert stats["bytes_baseline_map"] >= 10 * stats["bytes_vrs_map"]
-    assert M.map_bytes(egm.without_local_descriptors())["total"] == stats["bytes_vrs_map"]
-    text = B.format_stats(stats)
-    assert str(stats["bytes_vrs_map"]) in text and str(stats["bytes_baseline_map"]) in text
+    assert egm.local_desc is not None
+    assert "local_desc" not in M.to_arrays(egm)  # stored apart from the EGM's arrays
+    assert str(stats["points"]) in B.format_stats(stats)
 
 
 def test_synthetic_retrieval_recall(synthetic):
@@ -181,18 +177,19 @@ def test_unposed_and_empty_scenes_raise(small_synthetic_scene):
 # ----------------------------------------------------------------------------- CLI
 
 
-def test_cli_build_skip_protect_overwrite_export(small_synthetic_scene, tmp_path, capsys):
+def test_cli_build_skip_protect_export(small_synthetic_scene, tmp_path, capsys):
     from experiments.build_egm import main
+    from vrs_jax import maps
 
     out, col = tmp_path / "map", tmp_path / "colmap"
     args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--out", str(out),
             "--config", "test", "--quiet"]
     assert main(args + ["--export-colmap", str(col)]) == 0
-    stats = json.loads((out / "stats.json").read_text())
-    assert stats["points"] > 0 and stats["bytes"]["total"] == M.map_bytes(out)["total"]
-    egm = M.load_egm(out)
+    m = maps.load_map(out, require_ilm=False)
+    assert m.ilm is None and m.has_descriptors and m.config == maps.get_config("test")
+    assert maps.read_stats(out)["egm"]["points"] == m.egm.num_points
     rec = pycolmap.Reconstruction(col)
-    assert rec.num_points3D() == egm.num_points and rec.num_reg_images() == egm.num_images
+    assert rec.num_points3D() == m.egm.num_points and rec.num_reg_images() == m.egm.num_images
     mtime = (out / "egm.npz").stat().st_mtime_ns
     capsys.readouterr()
     # same settings: skipped
@@ -200,17 +197,9 @@ def test_cli_build_skip_protect_overwrite_export(small_synthetic_scene, tmp_path
     assert "skipping" in capsys.readouterr().out
     assert (out / "egm.npz").stat().st_mtime_ns == mtime
     # different settings: refused, map untouched
-    assert main(args + ["--baseline"]) == 2
-    assert "different map" in capsys.readouterr().err
+    assert main(args[:-3] + ["--config", "cpu-small", "--quiet"]) == 2
+    assert "other settings" in capsys.readouterr().err
     assert (out / "egm.npz").stat().st_mtime_ns == mtime
-    # --overwrite rebuilds
-    assert main(args + ["--baseline", "--overwrite"]) == 0
-    assert M.load_egm(out).is_baseline
-    # the VRS build predicted the baseline's size exactly (the build is deterministic)
-    stats_b = json.loads((out / "stats.json").read_text())
-    assert stats_b["points"] == stats["points"]
-    assert stats_b["bytes_baseline_map"] == stats["bytes_baseline_map"]
-    assert stats_b["bytes_vrs_map"] == stats["bytes_vrs_map"]
     # bad input: one line, exit 2
     assert main(["--format", "7scenes", "--root", str(tmp_path / "none"), "--out",
                  str(tmp_path / "m2"), "--config", "test", "--quiet"]) == 2

@@ -59,6 +59,34 @@ def _decode(v: Any) -> Any:
     return v
 
 
+def _fits(hint: Any, v: Any) -> bool:
+    """Whether a decoded JSON value has the kind a field hint asks for."""
+    if hint is Any:
+        return True
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(a, v) for a in typing.get_args(hint))
+    if hint is type(None):
+        return v is None
+    if hint is bool:
+        return isinstance(v, bool)
+    if hint is int:
+        return isinstance(v, int) and not isinstance(v, bool)
+    if hint is float:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+    if hint is str:
+        return isinstance(v, str)
+    if origin is tuple or hint is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(v, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(args[0], x) for x in v)
+        return not args or (len(args) == len(v) and all(_fits(a, x) for a, x in
+                                                          zip(args, v, strict=True)))
+    return True
+
+
 def from_dict(cls: type, d: Any, where: str | Path | None = None, path: str = "") -> Any:
     """Rebuild ``cls`` from :func:`to_dict`'s output; VrsError on any mismatch.
 
@@ -86,6 +114,8 @@ def from_dict(cls: type, d: Any, where: str | Path | None = None, path: str = ""
             kw[key] = from_dict(sub, value, where, f"{name}.{key}")
         else:
             kw[key] = _decode(value)
+            if not _fits(hints[key], kw[key]):
+                raise VrsError(f"config {name}.{key} = {value!r} is not a {hints[key]}", where)
     try:
         return cls(**kw)
     except (TypeError, ValueError, VrsError) as e:

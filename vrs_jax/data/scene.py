@@ -1,6 +1,6 @@
 """The one host-side scene structure that every dataset reader returns.
 
-All conventions are converted at the reader boundary (DESIGN.md section 3): poses are
+All conventions are converted at the reader boundary (docs/design.md, section 3): poses are
 world-to-camera in OpenCV axes, intrinsics in COLMAP's pixel convention, metres.
 """
 

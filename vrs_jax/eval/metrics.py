@@ -1,4 +1,4 @@
-"""Localization accuracy computed exactly as hloc's ``evaluate`` (DESIGN.md section 6).
+"""Localization accuracy computed exactly as hloc's ``evaluate`` (docs/design.md, section 6).
 
 Follows ``hloc/pipelines/Cambridge/utils.py::evaluate`` (cvg/Hierarchical-Localization,
 checked at commit c13273b, Dec 2025; the 7Scenes and Aachen pipelines reuse it):
@@ -101,7 +101,7 @@ def median_errors(t_err: np.ndarray, R_err: np.ndarray) -> tuple[float, float]:
 
 
 def summarize(t_err: np.ndarray, R_err: np.ndarray) -> dict:
-    """The DESIGN.md metrics of a set of queries.
+    """The docs/design.md (section 6) metrics of a set of queries.
 
     Returns:
       dict with ``n_queries``, ``n_failed`` (no estimate: infinite translation error),

@@ -10,7 +10,7 @@ blur stack as the real ("GT") patches (:func:`vrs_jax.features.patches.extract_p
 Training mixes this pool with ordinary pixel rays (``NerfConfig.patch_ray_fraction``), so the
 rendered patches converge towards the real patches the baseline describes, at every sample
 footprint the localizer uses, while full views stay renderable. This departs from the paper
-(which trains on whole images); DESIGN.md leaves it open. Measured effect (README): none on
+(which trains on whole images; docs/design.md, section 5). Measured effect (README): none on
 the synthetic room at the cpu-small budget (both 100% at 5 cm / 5 deg).
 """
 

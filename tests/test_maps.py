@@ -1,0 +1,141 @@
+"""The Map: one unit saved and loaded with its configuration by value; every way a map folder
+can be wrong gives one line naming the file."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from test_egm_map import _toy
+from test_nerf_ilm import _ilm
+
+from vrs_jax import configio, maps
+from vrs_jax.errors import VrsError
+from vrs_jax.maps.config import MapConfig
+from vrs_jax.nerf.config import get_config as nerf_config
+
+
+def _map(descriptors: bool = True) -> maps.Map:
+    egm = _toy(baseline=descriptors)
+    egm = egm.replace(names=("a.png", "b.png", "c.png"))
+    base = maps.get_config("test")
+    cfg = dataclasses.replace(base, nerf=nerf_config("test", n_clusters=2),
+                              egm=dataclasses.replace(base.egm, features=dataclasses.replace(
+                                  base.egm.features, descriptor=dataclasses.replace(
+                                      base.egm.features.descriptor, n_cells=2, n_bins=2))))
+    ilm = _ilm().replace(config=cfg.nerf)
+    src = maps.MapSource("7scenes", "/data/room", (("query_every", "8"),), ("q0.png",))
+    return maps.Map(egm=egm, ilm=ilm, config=cfg, source=src)
+
+
+def test_config_round_trips_exactly():
+    for cfg in maps.CONFIGS.values():
+        assert configio.from_dict(MapConfig, configio.to_dict(cfg)) == cfg
+    assert json.dumps(configio.to_dict(maps.get_config("paper")), allow_nan=False)
+
+
+@pytest.mark.parametrize("descriptors", [False, True])
+def test_save_load_roundtrip(tmp_path, descriptors):
+    m = _map(descriptors)
+    maps.save_map(m, tmp_path / "m", stats={"note": 1})
+    back = maps.load_map(tmp_path / "m")
+    assert back.config == m.config and back.source == m.source
+    assert back.has_descriptors == descriptors and back.names == m.names
+    np.testing.assert_array_equal(back.cluster, m.cluster)
+    for a, b in zip(jax.tree.leaves(m.ilm), jax.tree.leaves(back.ilm), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(back.egm.keypoints, m.egm.keypoints)
+    assert maps.read_stats(tmp_path / "m") == {"note": 1}
+    assert not list((tmp_path / "m").glob("*.tmp"))
+    b = maps.map_bytes(tmp_path / "m")
+    d = tmp_path / "m"
+    size = lambda n: (d / n).stat().st_size  # noqa: E731
+    assert b["vrs"] == size("map.json") + size("egm.npz") + size("ilm.npz")
+    if descriptors:
+        assert b["real"] == size("map.json") + size("egm.npz") + size("descriptors.npz")
+    assert not maps.load_map(d, descriptors=False).has_descriptors
+
+
+def test_edited_config_fails_instead_of_changing_meaning(tmp_path):
+    d = maps.save_map(_map(), tmp_path / "m")
+    meta = json.loads((d / "map.json").read_text())
+    meta["config"]["egm"]["k_max"] = "many"  # hand-edited
+    (d / "map.json").write_text(json.dumps(meta))
+    # the value is read as written; the arrays then disagree with it
+    with pytest.raises(VrsError) as e:
+        maps.load_map(d)
+    assert "map.json" in str(e.value) or "egm.npz" in str(e.value)
+    meta["config"]["egm"]["k_max"] = 16
+    meta["config"]["nerf"]["net_width"] = 999  # not the width the weights were trained with
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError, match="another config") as e:
+        maps.load_map(d)
+    assert "ilm.npz" in str(e.value)
+    meta["config"]["nerf"]["net_width"] = _map().config.nerf.net_width
+    meta["config"]["nerf"]["unheard_of"] = 1
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError, match="unknown fields") as e:
+        maps.load_map(d)
+    assert "map.json" in str(e.value)
+    del meta["config"]["nerf"]["unheard_of"]
+    del meta["config"]["nerf"]["lr_init"]
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError, match="lacks fields"):
+        maps.load_map(d)
+
+
+def test_corrupt_missing_and_foreign_files(tmp_path):
+    d = maps.save_map(_map(), tmp_path / "m")
+    raw = bytearray((d / "egm.npz").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (d / "egm.npz").write_bytes(bytes(raw))
+    with pytest.raises(VrsError, match="does not match map.json") as e:
+        maps.load_map(d)
+    assert "egm.npz" in str(e.value)
+
+    d = maps.save_map(_map(), tmp_path / "m2")
+    (d / "ilm.npz").unlink()
+    with pytest.raises(VrsError, match="map file missing"):
+        maps.load_map(d)
+
+    d = maps.save_map(_map(), tmp_path / "m3")
+    (d / "map.json").write_text("{not json")
+    with pytest.raises(VrsError, match="corrupt map metadata"):
+        maps.load_map(d)
+
+    d = maps.save_map(_map(), tmp_path / "m4")
+    meta = json.loads((d / "map.json").read_text())
+    meta["format_version"] = 1
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError, match="format version 1"):
+        maps.load_map(d)
+    with pytest.raises(VrsError, match="not found"):
+        maps.load_map(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(VrsError, match="no map.json"):
+        maps.load_map(tmp_path / "empty")
+
+
+def test_partial_map_without_nerf(tmp_path):
+    m = _map().replace(ilm=None)
+    d = maps.save_map(m, tmp_path / "m")
+    with pytest.raises(VrsError, match="no trained NeRF"):
+        maps.load_map(d)
+    assert maps.load_map(d, require_ilm=False).ilm is None
+
+
+def test_named_config_comments_match_values():
+    paper, cpu, test = (maps.get_config(n) for n in ("paper", "cpu-small", "test"))
+    assert (paper.egm.features.keypoints.max_keypoints, paper.egm.k_max) == (2048, 1024)
+    assert paper.features.patches.size == 15
+    assert (paper.nerf.net_depth, paper.nerf.net_width, paper.nerf.num_samples_coarse,
+            paper.nerf.num_samples_fine, paper.nerf.max_steps) == (8, 256, 128, 128, 200_000)
+    assert (cpu.egm.features.keypoints.max_keypoints, cpu.egm.k_max) == (512, 256)
+    assert (cpu.nerf.net_depth, cpu.nerf.net_width, cpu.nerf.num_samples_coarse,
+            cpu.nerf.max_steps) == (3, 128, 32, 4000)
+    assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
+            test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
+        128, 64, 9, 32, 300)
