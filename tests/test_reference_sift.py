@@ -64,6 +64,14 @@ def test_match_sift_equals_pycolmap_matcher(scene):
         assert set(map(tuple, ours.tolist())) == set(map(tuple, ref.tolist()))
         total += len(ref)
     assert total > 50
+    # A lone candidate (its second best counts as 90 degrees away), no cross check.
+    opts = pycolmap.FeatureMatchingOptions()
+    opts.sift.cross_check = False
+    one_way = pycolmap.FeatureMatcher.create(opts, pycolmap.Device.cpu)
+    lone = np.asarray(one_way.match(None, sift._descriptors(descs[0]), None,
+                                    sift._descriptors(descs[1][:1])), np.int64)
+    ours = sift.match_sift(descs[0], descs[1][:1], cross_check=False)
+    assert len(lone) > 0 and set(map(tuple, ours.tolist())) == set(map(tuple, lone.tolist()))
     # Without cross check: a superset, each first index once.
     one_way = sift.match_sift(descs[0], descs[1], cross_check=False)
     assert len(np.unique(one_way[:, 0])) == len(one_way) >= len(sift.match_sift(descs[0],

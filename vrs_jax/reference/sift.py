@@ -388,19 +388,26 @@ def unique_correspondences(query_idx: np.ndarray, point_idx: np.ndarray
     return pairs[:, 0], pairs[:, 1]
 
 
-def _one_way(sim: np.ndarray, max_ratio: float, max_distance: float) -> np.ndarray:
-    """[n1] best column of each row of ``sim`` [n1, n2] (cosines) passing COLMAP's distance
-    and ratio tests on angles, -1 where none (a lone candidate's second best is 90 deg)."""
-    if sim.shape[1] == 0:
-        return np.full(sim.shape[0], -1, np.int64)
-    best = np.argmax(sim, axis=1)
-    if sim.shape[1] > 1:
-        top2 = -np.partition(-sim, 1, axis=1)[:, :2]
-    else:
-        top2 = np.concatenate([sim, np.zeros_like(sim)], axis=1)
-    ang = np.arccos(np.clip(top2, -1.0, 1.0))
-    ok = (ang[:, 0] <= max_distance) & (ang[:, 0] < max_ratio * ang[:, 1])
-    return np.where(ok, best, -1)
+def _one_way(sim: np.ndarray, axis: int, max_ratio: float, max_distance: float
+             ) -> np.ndarray:
+    """Best match along ``axis`` of ``sim`` [n1, n2] (cosines) for each index of the other
+    axis, passing COLMAP's distance and ratio tests on angles; -1 where none.
+
+    As COLMAP's brute-force matcher, the second best similarity is at least 0 (a lone
+    candidate's second best is at 90 deg) and a tie with the best fails the ratio test.
+    """
+    other = 1 - axis
+    if sim.shape[axis] == 0:
+        return np.full(sim.shape[other], -1, np.int64)
+    best = np.argmax(sim, axis=axis)
+    idx = np.arange(sim.shape[other])
+    at = (idx, best) if axis == 1 else (best, idx)
+    b1 = sim[at]
+    masked = sim.copy()
+    masked[at] = -np.inf
+    b2 = np.maximum(masked.max(axis=axis), 0.0)
+    a1, a2 = np.arccos(np.clip(b1, -1.0, 1.0)), np.arccos(np.clip(b2, -1.0, 1.0))
+    return np.where((a1 <= max_distance) & (a1 < max_ratio * a2), best, -1)
 
 
 def match_sift(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0.8,
@@ -419,10 +426,10 @@ def match_sift(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0.8,
     a = np.asarray(desc1, np.float32).reshape(-1, DESC_DIM)
     b = np.asarray(desc2, np.float32).reshape(-1, DESC_DIM)
     sim = (a @ b.T) * np.float32(1.0 / 512.0**2)
-    m12 = _one_way(sim, max_ratio, max_distance)
+    m12 = _one_way(sim, 1, max_ratio, max_distance)
     i = np.flatnonzero(m12 >= 0)
     if cross_check and len(i):
-        m21 = _one_way(sim.T, max_ratio, max_distance)
+        m21 = _one_way(sim, 0, max_ratio, max_distance)
         i = i[m21[m12[i]] == i]
     return np.stack([i, m12[i]], axis=1).astype(np.int64)
 
