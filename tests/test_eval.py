@@ -118,6 +118,22 @@ def test_recall_strict_bounds_and_keys():
     assert metrics.recall(np.zeros(0), np.zeros(0)) == dict.fromkeys(RECALL_KEYS, 0.0)
 
 
+def test_scene_scale_and_relative_recall():
+    # Cameras on a circle of radius 2 (any centre): every distance to the centroid is 2.
+    a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    c = np.c_[2 * np.cos(a), 2 * np.sin(a), np.zeros_like(a)] + [10.0, -3.0, 1.0]
+    assert metrics.scene_scale(c) == pytest.approx(2.0)
+    # Median, not mean: one far camera does not move it.
+    line = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [100, 0, 0]])
+    d = np.abs(line[:, 0] - line[:, 0].mean())
+    assert metrics.scene_scale(line) == pytest.approx(np.median(d))
+    assert math.isnan(metrics.scene_scale(np.zeros((0, 3))))
+    # 1% of a 2 m scene is 2 cm: inclusive, like recall.
+    rec = metrics.relative_recall(np.array([0.02, 0.021, 0.05, np.inf]),
+                                  np.array([1.0, 0.5, 5.0, np.inf]), 2.0)
+    assert rec == {"1pct_1deg": 0.25, "2pct_2deg": 0.5, "5pct_5deg": 0.75}
+
+
 def test_summary_medians_with_failures():
     s = metrics.summarize(np.array([0.02, 0.04, np.inf]), np.array([1.0, 3.0, np.inf]))
     assert s["n_queries"] == 3 and s["n_failed"] == 1

@@ -89,6 +89,33 @@ def recall(t_err: np.ndarray, R_err: np.ndarray,
     return {k: float(np.mean((t_err < tm) & (R_err < rm))) for k, (tm, rm) in thresholds.items()}
 
 
+# Relative recall thresholds (translation as a fraction of the scene scale, rotation in
+# degrees), for scenes whose units are arbitrary (NeRF synthetic, LLFF) or small (DTU).
+RELATIVE_THRESHOLDS: dict[str, tuple[float, float]] = {
+    "1pct_1deg": (0.01, 1.0),
+    "2pct_2deg": (0.02, 2.0),
+    "5pct_5deg": (0.05, 5.0),
+}
+
+
+def scene_scale(centers: np.ndarray) -> float:
+    """Scale of a scene: median distance of the camera centres [N, 3] to their centroid.
+
+    In the scene's units (metres for metric datasets); nan for no cameras.
+    """
+    c = np.asarray(centers, np.float64).reshape(-1, 3)
+    if len(c) == 0:
+        return math.nan
+    return float(np.median(np.linalg.norm(c - c.mean(axis=0), axis=1)))
+
+
+def relative_recall(t_err: np.ndarray, R_err: np.ndarray, scale: float,
+                    thresholds: Mapping[str, tuple[float, float]] = RELATIVE_THRESHOLDS
+                    ) -> dict[str, float]:
+    """:func:`recall` with translation thresholds given as fractions of ``scale``."""
+    return recall(t_err, R_err, {k: (f * scale, r) for k, (f, r) in thresholds.items()})
+
+
 def median_errors(t_err: np.ndarray, R_err: np.ndarray) -> tuple[float, float]:
     """(median translation error in cm, median rotation error in degrees) over all queries,
     failures included (``np.median``, as hloc). The translation median is inf when at least
