@@ -1,29 +1,35 @@
 """Localization benchmark: per-stage latency and accuracy, VRS-NeRF (render) vs the
-real-patch baseline (real), on the same split.
+real-patch baseline (real) vs the COLMAP SIFT reference localizer (sift), on the same split.
 
     python -m benchmarks.localize [--scenes synthetic,fern,lego,scan24] [--json FILE]
 
 For each scene, every query is localized in ``render`` mode (descriptors of NeRF-rendered
-patches: VRS-NeRF) and ``real`` mode (the map's stored descriptors of the real reference
-patches: the hierarchical baseline), with the map's patch size and the config's sampler
-(depth-guided by default; --full-sampling renders coarse + fine). Reported per scene and
-mode: median translation / rotation error, recall at hloc's thresholds and relative to the
-scene size, fallbacks, distinct inliers, the median time per query of each stage (retrieval,
-render, describe, matching, RANSAC, refinement; query preparation separately; a warm-up query
-compiles first), rays and NeRF evaluations per query, and map bytes. Each run is measured
-afresh and recorded in WORK/runs/ (the ablation and figures reuse those records).
+patches: VRS-NeRF), ``real`` mode (the map's stored descriptors of the real reference
+patches: the hierarchical baseline) and by the SIFT reference (``vrs_jax.reference.sift``:
+COLMAP SIFT, triangulation with the known poses, pycolmap absolute pose), with the map's
+patch size and the config's sampler (depth-guided by default; --full-sampling renders coarse
++ fine). Reported per scene and method: median translation / rotation error, recall at
+hloc's thresholds and relative to the scene size (median distance of the cameras to their
+centroid), failures and fallbacks, distinct inliers, the median time per query of each stage
+(query preparation separately; a warm-up query compiles first), rays and NeRF evaluations
+per query, and map bytes. Each run is measured afresh and recorded in WORK/runs/ (the
+ablation and figures reuse those records).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+from pathlib import Path
+
+import numpy as np
 
 from benchmarks import common
 from vrs_jax.errors import cli_main
+from vrs_jax.eval import metrics
 from vrs_jax.localize import STAGE_NAMES as STAGES
 
-MODES = ("render", "real")
+MODES = ("render", "real", "sift")
 RECALL_KEYS = ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50cm_5deg",
                "500cm_10deg")
 
@@ -32,7 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmarks.localize", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     common.add_scene_args(p, default_scenes=("synthetic", "fern", "lego", "scan24"))
-    p.add_argument("--modes", default="render,real", help="comma-separated: render, real")
+    p.add_argument("--modes", default="render,real,sift",
+                   help="comma-separated: render (VRS-NeRF), real (real-patch baseline), sift "
+                        "(the COLMAP SIFT reference localizer, vrs_jax.reference.sift)")
     p.add_argument("--full-sampling", action="store_true",
                    help="render mode: coarse + fine sampling instead of the depth-guided "
                         "interval (~6x slower rendering on cpu-small)")
@@ -41,6 +49,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
     return p
+
+
+def relative(s: dict, scale: float) -> dict:
+    """Recall at thresholds relative to the scene scale, and the median relative error."""
+    import numpy as np
+
+    from vrs_jax.eval import metrics
+
+    dt = np.asarray(s["per_query"]["t_err_m"], np.float64)
+    dr = np.asarray(s["per_query"]["R_err_deg"], np.float64)
+    return {"scene_scale": scale, "recall_relative": metrics.relative_recall(dt, dr, scale),
+            "median_t_rel": float(np.median(dt) / scale) if len(dt) else None}
+
+
+def sift_row(ctx: common.SceneCtx, args, scale: float) -> dict:
+    """The COLMAP SIFT reference on the same map images and queries as the other rows."""
+    import time
+
+    from benchmarks import sift_reference
+    from vrs_jax.reference import sift
+
+    cfg = sift.SiftReferenceConfig()
+    work = Path(args.work) / "sift" / ctx.name
+    smap = sift.build_sift_map(ctx.scene, work, cfg, progress=not args.quiet)
+    t0 = time.perf_counter()
+    results = sift.localize_sift(smap, ctx.queries, cfg, progress=not args.quiet)
+    row = sift_reference.row_of(ctx.name, ctx.queries, results, smap, cfg, scale,
+                                time.perf_counter() - t0)
+    return row
 
 
 def row_of(scene: str, mode: str, s: dict) -> dict:
@@ -59,15 +96,22 @@ def row_of(scene: str, mode: str, s: dict) -> dict:
 
 
 def accuracy_table(rows: list[dict]) -> str:
+    rel = lambda r, k: common.pct(r["recall_relative"][k])  # noqa: E731
     return common.table(
-        ["scene / mode", "queries", "median (cm, deg)", "1cm/1deg", "2cm/2deg", "5cm/5deg",
-         "10cm/5deg", "25cm/2deg", "fallback", "map (MB)"],
+        ["scene / mode", "queries", "median (cm, deg)", "median (% scale)", "1cm/1deg",
+         "2cm/2deg", "5cm/5deg", "1%/1deg", "2%/2deg", "5%/5deg", "fail/fallback",
+         "inliers", "map (MB)"],
         [[f"{r['scene']} / {r['mode']}", r["n_queries"],
           f"{common.fmt(r['median_t_cm'])}, {common.fmt(r['median_R_deg'])}",
+          common.fmt(None if r["median_t_rel"] is None else 100 * r["median_t_rel"]),
           *(common.pct(r["recall"][k] if r["recall"] else None)
-            for k in ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg")),
-          r["n_fallback"], common.fmt(r["map_bytes"]["total"] / 1e6, 3)] for r in rows],
-        title="Accuracy (render = VRS-NeRF, rendered patches; real = baseline, real patches)")
+            for k in ("1cm_1deg", "2cm_2deg", "5cm_5deg")),
+          *(rel(r, k) for k in ("1pct_1deg", "2pct_2deg", "5pct_5deg")),
+          r["n_queries"] - r["n_success"], common.fmt(r["median_inliers"], 0),
+          common.fmt(r["map_bytes"]["total"] / 1e6, 3)] for r in rows],
+        title="Accuracy (render = VRS-NeRF, rendered patches; real = baseline, real patches; "
+              "sift = COLMAP SIFT reference; % scale = of the median camera distance to the "
+              "cameras' centroid; inliers are distinct 2D-3D pairs)")
 
 
 def latency_table(rows: list[dict]) -> str:
@@ -77,8 +121,8 @@ def latency_table(rows: list[dict]) -> str:
         [[f"{r['scene']} / {r['mode']}", *(ms(r["timing_s"][k]) for k in STAGES),
           ms(r["localize_s_per_query"]), ms(r["timing_s"]["query_preparation"]),
           common.fmt(r["rays_per_query"], 0), common.fmt(r["nerf_evals_per_query"], 0)]
-         for r in rows],
-        title="Median latency per query (ms)")
+         for r in rows if r["mode"] != "sift"],
+        title="Median latency per query (ms); the SIFT reference's times are in the JSON")
 
 
 @cli_main
@@ -94,7 +138,12 @@ def main(argv: list[str] | None = None) -> int:
     rows, maps = [], {}
     for ctx in ctxs:
         maps[ctx.name] = common.map_info(ctx)
+        c = ctx.scene.centers[np.asarray(ctx.scene.has_pose, bool)]
+        scale = metrics.scene_scale(c)
         for mode in modes:
+            if mode == "sift":
+                rows.append(sift_row(ctx, args, scale))
+                continue
             over = {}
             if args.top_k is not None:
                 over["top_k"] = args.top_k
@@ -103,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg = common.localize_cfg(ctx, mode, **over)
             s = common.localize_run(ctx, cfg, args.work, fresh=True, progress=not args.quiet)
             row = row_of(ctx.name, mode, s)
+            row.update(relative(s, scale))
             row["localize_config"] = dataclasses.asdict(cfg)
             rows.append(row)
     print()
