@@ -128,10 +128,10 @@ def test_scene_scale_and_relative_recall():
     d = np.abs(line[:, 0] - line[:, 0].mean())
     assert metrics.scene_scale(line) == pytest.approx(np.median(d))
     assert math.isnan(metrics.scene_scale(np.zeros((0, 3))))
-    # 1% of a 2 m scene is 2 cm: inclusive, like recall.
-    rec = metrics.relative_recall(np.array([0.02, 0.021, 0.05, np.inf]),
-                                  np.array([1.0, 0.5, 5.0, np.inf]), 2.0)
-    assert rec == {"1pct_1deg": 0.25, "2pct_2deg": 0.5, "5pct_5deg": 0.75}
+    # 1% of a 2 m scene is 2 cm: strict, like hloc's recall (an error on the bound fails).
+    rec = metrics.relative_recall(np.array([0.0199, 0.02, 0.05, 0.03, np.inf]),
+                                  np.array([0.5, 0.5, 4.9, 5.0, 180.0]), 2.0)
+    assert rec == {"1pct_1deg": 0.2, "2pct_2deg": 0.4, "5pct_5deg": 0.6}
 
 
 def test_summary_medians_with_failures():

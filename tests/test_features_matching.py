@@ -129,4 +129,5 @@ def test_pairwise_distances():
     a, b = rng.normal(size=(5, 7)), rng.normal(size=(6, 7))
     ref = np.linalg.norm(a[:, None] - b[None], axis=-1)
     np.testing.assert_allclose(np.asarray(pairwise_distances(a, b)), ref, rtol=1e-5)
-    assert float(np.asarray(pairwise_distances(a, a)).diagonal().max()) < 1e-3
+    # self-distances: float32 cancellation leaves sqrt(eps * 2 |a|^2) ~ 1e-3 for |a|^2 ~ 7
+    assert float(np.asarray(pairwise_distances(a, a)).diagonal().max()) < 4e-3

@@ -44,7 +44,12 @@ def test_training_raises_heldout_psnr(prep):
     res = T.train(prep, None, steps=300, progress=False)
     after = _heldout_psnr(prep, res.state.params)
     assert res.history[-1]["step"] == 300 and res.steps_per_s > 0
-    assert "heldout_psnr" in res.history[99]
+    # the host reads metrics every log_every steps only (no device sync per step)
+    read = [h["step"] for h in res.history]
+    assert len(read) < 300 and read[-1] == 300
+    assert all(any(s % n == 0 for n in (CFG.log_every, CFG.checkpoint_every, CFG.eval_every))
+               for s in read)
+    assert all("heldout_psnr" in h for h in res.history if h["step"] % CFG.eval_every == 0)
     # Stated margin: +8 dB and >= 19 dB after 300 steps (measured: 9.1 -> 22.1 dB).
     print(f"held-out PSNR {before:.2f} -> {after:.2f} dB")
     assert after >= before + 8.0 and after >= 19.0, (before, after)
@@ -60,7 +65,7 @@ def test_resume_reproduces_uninterrupted_run(prep, tmp_path):
     first = T.train(prep, tmp_path / "split", steps=10, progress=False)
     assert int(first.state.step) == 10
     resumed = T.train(prep, tmp_path / "split", steps=20, progress=False)
-    assert int(resumed.state.step) == 20 and resumed.history[0]["step"] == 11
+    assert int(resumed.state.step) == 20 and resumed.history[-1]["step"] == 20
     _allclose_trees(full.state.params, resumed.state.params)
     _allclose_trees(full.state.opt_state, resumed.state.opt_state)
     np.testing.assert_array_equal(np.asarray(full.state.key), np.asarray(resumed.state.key))
@@ -78,7 +83,8 @@ def test_nan_guard_stops_and_keeps_last_good_checkpoint(prep, tmp_path):
     # Poison the data of the resumed run: the very next step produces NaN.
     cd = prep.cluster_data.replace(scale=prep.cluster_data.scale * jnp.nan)
     bad = dataclasses.replace(prep, cluster_data=cd)
-    with pytest.raises(T.TrainingDiverged, match=r"diverged at step 11 .*last good "
+    # detected at the next host read of the loss (the run's last step here)
+    with pytest.raises(T.TrainingDiverged, match=r"diverged by step 20 .*last good "
                                                  r"checkpoint: step 10"):
         T.train(bad, tmp_path, steps=20, progress=False)
     mngr = T.checkpoint_manager(tmp_path / "checkpoints", CFG)
@@ -89,7 +95,7 @@ def test_nan_guard_stops_and_keeps_last_good_checkpoint(prep, tmp_path):
 
 def test_huge_learning_rate_is_caught(prep, tmp_path):
     cfg = dataclasses.replace(CFG, lr_init=1e30, lr_final=1e30, lr_delay_steps=0)
-    with pytest.raises(T.TrainingDiverged, match="diverged at step .*no checkpoint"):
+    with pytest.raises(T.TrainingDiverged, match="diverged by step .*no checkpoint"):
         T.train(dataclasses.replace(prep, cfg=cfg), tmp_path, steps=50, progress=False)
 
 
