@@ -11,7 +11,8 @@ from test_egm_map import _toy
 
 from vrs_jax import geometry as g
 from vrs_jax.data.readers import colmap as colmap_reader
-from vrs_jax.egm.colmap import colmap_camera, export_colmap
+from vrs_jax.data.readers.colmap import colmap_camera
+from vrs_jax.egm.colmap import export_colmap
 
 
 @pytest.mark.parametrize("dist, model", [

@@ -2,8 +2,8 @@
 
 :func:`export_colmap` writes a map so that COLMAP, hloc, pycolmap and our own COLMAP reader
 (``vrs_jax.data.readers.colmap``) open it: one camera per image in the simplest model that
-represents its intrinsics exactly (:func:`colmap_camera`), the EGM keypoints as 2D points and
-the 3D points with their tracks.
+represents its intrinsics exactly (``data.readers.colmap.colmap_camera``), the EGM keypoints
+as 2D points and the 3D points with their tracks.
 """
 
 from __future__ import annotations
@@ -13,33 +13,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from vrs_jax.data.readers.colmap import colmap_camera
 from vrs_jax.egm.map import EGM
-
-
-def colmap_camera(K: np.ndarray, dist: np.ndarray, size, camera_id: int) -> pycolmap.Camera:
-    """The simplest pycolmap camera that represents OpenCV intrinsics exactly.
-
-    Args:
-      K: [3, 3] intrinsics (no skew); dist: [5] OpenCV (k1, k2, p1, p2, k3) or None.
-      size: (width, height).
-    Returns:
-      PINHOLE (fx, fy, cx, cy) when all of dist is 0, OPENCV (+ k1 k2 p1 p2) when k3 = 0,
-      else FULL_OPENCV (+ k1 k2 p1 p2 k3, with k4 = k5 = k6 = 0). All three are read back by
-      :func:`vrs_jax.data.readers.colmap.camera_to_K_dist` to the same K and dist.
-    """
-    K = np.asarray(K, np.float64)
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if not np.all(d == 0):
-        if d[4] == 0:
-            model, params = "OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3]]
-        else:
-            model, params = "FULL_OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3], d[4],
-                                            0, 0, 0]
-    else:
-        model, params = "PINHOLE", [fx, fy, cx, cy]
-    return pycolmap.Camera(model=model, width=int(size[0]), height=int(size[1]),
-                           params=params, camera_id=camera_id)
 
 
 def to_colmap(egm: EGM) -> pycolmap.Reconstruction:

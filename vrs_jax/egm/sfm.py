@@ -17,7 +17,6 @@ Work folder layout (re-running reuses a finished model, hloc style)::
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import shutil
 import warnings
@@ -28,6 +27,7 @@ import pycolmap
 
 from vrs_jax import geometry
 from vrs_jax.data.images import image_size
+from vrs_jax.data.readers.colmap import quiet_pycolmap
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError, require_dir
 
@@ -57,18 +57,6 @@ class SfmConfig:
     num_threads: int = -1
     # Fixed seed for the RANSAC / mapper randomness, so that runs are repeatable.
     seed: int = 0
-
-
-@contextlib.contextmanager
-def quiet_pycolmap(verbose: bool = False):
-    """Silence COLMAP's INFO log lines (glog) inside the block unless ``verbose``."""
-    old = pycolmap.logging.minloglevel
-    if not verbose:
-        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
 
 
 def list_images(image_dir: str | Path) -> list[str]:

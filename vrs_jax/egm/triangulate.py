@@ -27,9 +27,8 @@ import numpy as np
 import pycolmap
 
 from vrs_jax import geometry
+from vrs_jax.data.readers.colmap import colmap_camera, quiet_pycolmap
 from vrs_jax.data.scene import Scene
-from vrs_jax.egm.colmap import colmap_camera
-from vrs_jax.egm.sfm import quiet_pycolmap
 from vrs_jax.errors import VrsError
 from vrs_jax.features.matching import match_jit
 

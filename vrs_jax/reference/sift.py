@@ -39,7 +39,6 @@ Imports only vrs_jax.data and vrs_jax.errors (plus pycolmap, numpy).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import shutil
 import time
@@ -50,6 +49,7 @@ import pycolmap
 from tqdm.auto import tqdm
 
 from vrs_jax.data.images import read_image
+from vrs_jax.data.readers.colmap import colmap_camera, quiet_pycolmap
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 
@@ -150,40 +150,6 @@ class SiftResult:
 # ----------------------------------------------------------------------------- pycolmap glue
 
 
-@contextlib.contextmanager
-def _quiet(verbose: bool = False):
-    """Only COLMAP's errors inside the block (its INFO lines and the warnings about point
-    colours it cannot read, as images come from memory) unless ``verbose``."""
-    old = pycolmap.logging.minloglevel
-    if not verbose:
-        pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
-
-
-def colmap_camera(K: np.ndarray, dist: np.ndarray, size, camera_id: int = 1) -> pycolmap.Camera:
-    """pycolmap camera of OpenCV intrinsics: PINHOLE without distortion, OPENCV with
-    (k1, k2, p1, p2), FULL_OPENCV when k3 is non-zero.
-
-    Args:
-      K: [3, 3] intrinsics (COLMAP pixel convention); dist: [5] (k1, k2, p1, p2, k3);
-      size: (width, height).
-    """
-    K = np.asarray(K, np.float64)
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if np.all(d == 0):
-        model, params = "PINHOLE", [fx, fy, cx, cy]
-    elif d[4] == 0:
-        model, params = "OPENCV", [fx, fy, cx, cy, *d[:4]]
-    else:
-        model, params = "FULL_OPENCV", [fx, fy, cx, cy, *d[:4], d[4], 0.0, 0.0, 0.0]
-    return pycolmap.Camera(model=model, width=int(size[0]), height=int(size[1]),
-                           params=params, camera_id=camera_id)
-
-
 def _extraction_options(cfg: SiftReferenceConfig) -> pycolmap.FeatureExtractionOptions:
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = cfg.num_threads
@@ -265,7 +231,7 @@ def build_sift_map(scene: Scene, work_dir: str | Path,
     model_dir.mkdir(parents=True)
     t_start = time.perf_counter()
     n = len(refs)
-    with _quiet(verbose):
+    with quiet_pycolmap(verbose, errors_only=True):
         pycolmap.set_random_seed(cfg.seed)
         extractor = pycolmap.FeatureExtractor.create(_extraction_options(cfg),
                                                      pycolmap.Device.cpu)
@@ -356,7 +322,7 @@ def sift_map_bytes(sift_map: SiftMap) -> dict[str, int]:
     Returns those parts, ``total``, and ``n_keypoints`` / ``n_points3d`` for reference.
     """
     n_kp = int(sum(len(k) for k in sift_map.keypoints))
-    cam_params = sum(len(colmap_camera(k, d, s).params)
+    cam_params = sum(len(colmap_camera(k, d, s, 1).params)
                      for k, d, s in zip(sift_map.K, sift_map.dist, sift_map.sizes, strict=True))
     parts = {"descriptors": n_kp * DESC_DIM, "keypoints": n_kp * 2 * 4,
              "point_ids": n_kp * 4, "points3d": int(len(sift_map.points3d)) * 3 * 4,
@@ -490,7 +456,7 @@ class _Localizer:
         if len(q_idx) >= 4:
             ret = pycolmap.estimate_and_refine_absolute_pose(
                 kp[q_idx, :2].astype(np.float64), self.map.points3d[p_idx],
-                colmap_camera(K, dist, size), self.est, self.ref)
+                colmap_camera(K, dist, size, 1), self.est, self.ref)
         t3 = time.perf_counter()
         timing = {"read": read_s, "extract": t1 - t0, "match": t2 - t1, "pose": t3 - t2}
         timing["total"] = float(sum(timing.values()))
@@ -519,7 +485,7 @@ def localize_sift(sift_map: SiftMap, queries: Scene,
     their own intrinsics. Returns one :class:`SiftResult` per image, in order; a query that
     cannot be localized is a failure (success False, NaN pose), never an exception.
     """
-    with _quiet(verbose):
+    with quiet_pycolmap(verbose, errors_only=True):
         pycolmap.set_random_seed(cfg.seed)
         loc = _Localizer(sift_map, cfg)
         out = []

@@ -7,6 +7,7 @@ mapped to a pinhole K plus OpenCV distortion ``(k1, k2, p1, p2, k3)``.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 from pathlib import Path
 
@@ -204,3 +205,46 @@ def load(root: str | Path, *, model: str | Path | None = None, images: str | Pat
     return C.make_scene(root, names, paths, K, np.stack(dists), sizes, np.stack(Rs),
                         np.stack(ts), posed, C.query_mask(names, query_every), "colmap",
                         points3d=pts)
+
+
+# ----------------------------------------------------------------------------- pycolmap glue
+
+
+def colmap_camera(K: np.ndarray, dist: np.ndarray, size, camera_id: int) -> pycolmap.Camera:
+    """The simplest pycolmap camera that represents OpenCV intrinsics exactly.
+
+    Args:
+      K: [3, 3] intrinsics (no skew); dist: [5] OpenCV (k1, k2, p1, p2, k3) or None.
+      size: (width, height).
+    Returns:
+      PINHOLE (fx, fy, cx, cy) when all of dist is 0, OPENCV (+ k1 k2 p1 p2) when k3 = 0,
+      else FULL_OPENCV (+ k1 k2 p1 p2 k3, with k4 = k5 = k6 = 0). All three are read back by
+      :func:`vrs_jax.data.readers.colmap.camera_to_K_dist` to the same K and dist.
+    """
+    K = np.asarray(K, np.float64)
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not np.all(d == 0):
+        if d[4] == 0:
+            model, params = "OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3]]
+        else:
+            model, params = "FULL_OPENCV", [fx, fy, cx, cy, d[0], d[1], d[2], d[3], d[4],
+                                            0, 0, 0]
+    else:
+        model, params = "PINHOLE", [fx, fy, cx, cy]
+    return pycolmap.Camera(model=model, width=int(size[0]), height=int(size[1]),
+                           params=params, camera_id=camera_id)
+
+
+@contextlib.contextmanager
+def quiet_pycolmap(verbose: bool = False, errors_only: bool = False):
+    """Silence COLMAP's INFO log lines (glog) inside the block unless ``verbose``; with
+    ``errors_only`` its warnings too (e.g. about point colours of images given from memory)."""
+    old = pycolmap.logging.minloglevel
+    if not verbose:
+        level = pycolmap.logging.ERROR if errors_only else pycolmap.logging.WARNING
+        pycolmap.logging.minloglevel = int(level)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
