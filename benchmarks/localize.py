@@ -30,8 +30,7 @@ from vrs_jax.eval import metrics
 from vrs_jax.localize import STAGE_NAMES as STAGES
 
 MODES = ("render", "real", "sift")
-RECALL_KEYS = ("1cm_1deg", "2cm_2deg", "5cm_5deg", "10cm_5deg", "25cm_2deg", "50cm_5deg",
-               "500cm_10deg")
+RECALL_KEYS = tuple(metrics.RECALL_THRESHOLDS)
 
 
 def build_parser() -> argparse.ArgumentParser:
