@@ -18,4 +18,5 @@ from vrs_jax.localize.run import localize, localize_timed, run_stages
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 
 __all__ = ["CONFIGS", "STAGE_NAMES", "LocalizeConfig", "LocalizeResult", "Localizer", "Query",
-           "get_config", "localize", "localize_timed", "prepare_query", "run_stages", "stack_queries"]
+           "get_config", "localize", "localize_timed", "prepare_query", "run_stages",
+           "stack_queries"]
