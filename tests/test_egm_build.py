@@ -194,7 +194,7 @@ def test_cli_build_skip_protect_export(small_synthetic_scene, tmp_path, capsys):
     capsys.readouterr()
     # same settings: skipped
     assert main(args) == 0
-    assert "skipping" in capsys.readouterr().out
+    assert "skipping" in capsys.readouterr().err  # a log line (vrs_jax logger, stderr)
     assert (out / "egm.npz").stat().st_mtime_ns == mtime
     # different settings: refused, map untouched
     assert main(args[:-3] + ["--config", "cpu-small", "--quiet"]) == 2
