@@ -125,8 +125,15 @@ def query_scene(m: maps.Map, args):
 
 def refuse_map_images(m: maps.Map, queries) -> None:
     """VrsError if any query image is one of the map's reference images (a split mismatch
-    would leak test images into the map)."""
-    leaked = sorted(set(queries.names) & set(m.names))
+    would leak test images into the map). When the map records its image folder and the
+    queries come from another one, the image files are compared (photos in two folders may
+    share names); else the names."""
+    if m.source.root and Path(m.source.root).resolve() != Path(queries.root).resolve():
+        ref_files = {(Path(m.source.root) / n).resolve() for n in m.names}
+        leaked = sorted(n for n, p in zip(queries.names, queries.image_paths, strict=True)
+                        if Path(p).resolve() in ref_files)
+    else:
+        leaked = sorted(set(queries.names) & set(m.names))
     if leaked:
         raise VrsError(f"{len(leaked)} query images are map images ({', '.join(leaked[:3])}"
                        f"{' ...' if len(leaked) > 3 else ''}): the split differs from the map's",

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,6 +14,7 @@ from experiments import localize as cli
 from experiments import make_synthetic
 from vrs_jax import maps
 from vrs_jax.data.readers import load_scene
+from vrs_jax.errors import VrsError
 from vrs_jax.eval.results import read_results
 from vrs_jax.runrecord import RECORD_FORMAT
 
@@ -88,6 +90,12 @@ def test_localize_query_list_refusals(tiny_map, small_synthetic_scene, tmp_path,
     assert "exclusive" in capsys.readouterr().err
     assert cli.main(base + ["--queries", str(qlist)]) == 2
     assert "--images" in capsys.readouterr().err
+    # the same name in another folder is another photo: not refused
+    one = scene.subset(np.array([ref]))
+    other = dataclasses.replace(one, root=tmp_path, image_paths=[tmp_path / scene.names[ref]])
+    cli.refuse_map_images(m, other)
+    with pytest.raises(VrsError, match="map images"):
+        cli.refuse_map_images(m, one)
 
 
 def test_make_synthetic_writes_run_record(tmp_path):
