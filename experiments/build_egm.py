@@ -13,8 +13,15 @@ skips the build; a folder holding another map is refused.
 from __future__ import annotations
 
 import argparse
+import time
 
-from experiments.common import add_scene_args, load_scene_from_args, scene_opts
+from experiments.common import (
+    add_scene_args,
+    load_scene_from_args,
+    record_run,
+    scene_opts,
+    start_run,
+)
 from vrs_jax import fileio, maps
 from vrs_jax.egm import build
 from vrs_jax.egm.colmap import export_colmap
@@ -37,13 +44,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the map as a COLMAP model (cameras, images, points3D)")
     p.add_argument("--binary", action="store_true", help="COLMAP export in binary (.bin)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--verbose", action="store_true", help="show COLMAP's log lines")
+    p.add_argument("--verbose", action="store_true",
+                   help="debug log lines, and COLMAP's log lines")
     return p
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    start_run(args)
+    t0 = time.perf_counter()
     cfg = maps.get_config(args.config)
     out = fileio.check_writable(args.out)
     scene = load_scene_from_args(args, sfm_dir=out / "sfm")
@@ -57,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.export_colmap:
         d = export_colmap(m.egm, args.export_colmap, text=not args.binary)
         print(f"COLMAP model written to {d}")
+    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 

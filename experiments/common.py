@@ -86,3 +86,33 @@ def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None,
                                                                    args.query_every))
         return scene
     return load_scene(fmt, args.root, **scene_opts(args))
+
+
+def start_run(args: argparse.Namespace) -> None:
+    """Configure the ``vrs_jax`` logger (DEBUG with ``--verbose``)."""
+    from vrs_jax.runrecord import setup_logging
+
+    setup_logging(bool(getattr(args, "verbose", False)))
+
+
+def record_run(out_dir: str | Path, args: argparse.Namespace, config=None,
+               timings: dict | None = None, argv: list[str] | None = None) -> Path:
+    """Write the run record (``out_dir/run.json``, never overwriting an earlier one).
+
+    Args:
+      args: the parsed arguments (recorded under ``args``).
+      config: the resolved config dataclass (recorded under ``config``), or None.
+      timings: {stage: seconds}.
+      argv: the command line as passed to ``main`` (None: ``sys.argv``).
+    """
+    import dataclasses
+    import sys
+
+    from vrs_jax.configio import to_dict
+    from vrs_jax.runrecord import run_record, write_run_record
+
+    values: dict = {"args": vars(args)}
+    if config is not None:
+        values["config"] = to_dict(config) if dataclasses.is_dataclass(config) else config
+    cmd = sys.argv if argv is None else [sys.argv[0], *argv]
+    return write_run_record(out_dir, run_record(values, cmd, timings))

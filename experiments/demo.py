@@ -21,6 +21,7 @@ import json
 import time
 from pathlib import Path
 
+from experiments.common import record_run, start_run
 from vrs_jax import fileio, localize, maps
 from vrs_jax.data import synthetic
 from vrs_jax.data.readers import load_scene
@@ -42,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="small scene and tiny configs (minutes; a smoke run)")
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
 
 
@@ -61,6 +63,7 @@ def format_table(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    start_run(args)
     out = Path(args.out)
     t_start = time.perf_counter()
     if args.quick:
@@ -95,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
            "rows": rows, "total_s": time.perf_counter() - t_start}
     fileio.write_text(out / "demo.json", json.dumps(metrics.json_ready(doc), indent=2,
                                                     default=str) + "\n")
+    record_run(out, args, {"scene": scfg, "map": maps.get_config(name),
+                           "localize": localize.get_config(name)},
+               {"total": doc["total_s"]}, argv)
     print(f"\n[demo] done in {doc['total_s'] / 60:.1f} min; details in {out / 'demo.json'}")
     return 0
 

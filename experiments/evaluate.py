@@ -23,7 +23,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from experiments.common import parse_opts
+from experiments.common import parse_opts, record_run, start_run
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results
@@ -134,13 +134,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                    help="further reader option, repeatable (e.g. --opt pgt=PATH for 7Scenes)")
     p.add_argument("--json", default=None, metavar="OUT",
-                   help="also write the metrics and per-query errors as JSON here")
+                   help="also write the metrics and per-query errors as JSON here (and the "
+                        "run record, run.json, beside it)")
+    p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    start_run(args)
     results = read_results(args.results)
     opts = parse_opts(args.opt)
     if args.query_every is not None:
@@ -179,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+        record_run(out.parent, args, None, None, argv)
     return 0
 
 

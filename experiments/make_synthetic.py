@@ -16,6 +16,7 @@ import dataclasses
 import re
 import time
 
+from experiments.common import record_run, start_run
 from vrs_jax.data.synthetic import SyntheticConfig, generate, is_generated
 from vrs_jax.errors import cli_main
 
@@ -65,12 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="regenerate even if DIR already holds this scene, or replace a synthetic "
                         "scene of other settings")
+    p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    start_run(args)
     cfg = dataclasses.replace(SyntheticConfig(), seed=args.seed, width=args.size[0],
                               height=args.size[1], n_reference=args.n_ref,
                               n_query=args.n_query)
@@ -82,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     out = generate(args.out, cfg, overwrite=args.overwrite, progress=True)
     print(f"synthetic scene ({cfg.n_reference} reference + {cfg.n_query} query frames, "
           f"{cfg.width}x{cfg.height}) in {out} [{time.perf_counter() - t0:.1f} s]")
+    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 

@@ -16,7 +16,13 @@ from __future__ import annotations
 
 import argparse
 
-from experiments.common import add_scene_args, load_scene_from_args, scene_opts
+from experiments.common import (
+    add_scene_args,
+    load_scene_from_args,
+    record_run,
+    scene_opts,
+    start_run,
+)
 from vrs_jax import maps
 from vrs_jax.errors import cli_main
 from vrs_jax.maps.build import describe
@@ -44,7 +50,8 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
                    help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "
                         "trains on whole images only, as the paper)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--verbose", action="store_true", help="show COLMAP's log lines (SfM)")
+    p.add_argument("--verbose", action="store_true",
+                   help="debug log lines, and COLMAP's log lines (SfM)")
     return p
 
 
@@ -58,11 +65,14 @@ def map_config(args: argparse.Namespace) -> maps.MapConfig:
     return maps.get_config(args.config, **over)
 
 
-def run(args: argparse.Namespace, fmt: str | None = None) -> int:
+def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None = None) -> int:
+    import time
     from pathlib import Path
 
     from vrs_jax import fileio
 
+    start_run(args)
+    t0 = time.perf_counter()
     cfg = map_config(args)
     out = Path(args.out)
     fileio.check_writable(out)  # before any work starts
@@ -72,12 +82,13 @@ def run(args: argparse.Namespace, fmt: str | None = None) -> int:
     maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
                    source_options=scene_opts(args))
     print(f"[3/3] {describe(out)}")
+    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
-    return run(build_parser().parse_args(argv))
+    return run(build_parser().parse_args(argv), argv=argv)
 
 
 if __name__ == "__main__":

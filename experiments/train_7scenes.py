@@ -26,7 +26,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     args.root = str(Path(args.root) / args.scene)
-    return run(args, "7scenes")
+    return run(args, "7scenes", argv=argv)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from vrs_jax.errors import cli_main
 def main(argv: list[str] | None = None) -> int:
     p = build_parser("aachen", default_config="paper", description=__doc__.split("\n\n")[0])
     p.set_defaults(clusters=16)
-    return run(p.parse_args(argv), "aachen")
+    return run(p.parse_args(argv), "aachen", argv=argv)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import add_scene_args, load_scene_from_args
+from experiments.common import add_scene_args, load_scene_from_args, record_run, start_run
 from vrs_jax.errors import VrsError, cli_main
 
 
@@ -43,12 +43,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "there are no held-out ones)")
     p.add_argument("--no-resume", action="store_true", help="ignore existing checkpoints")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    start_run(args)
     from vrs_jax.nerf import ilm as ilm_lib
     from vrs_jax.nerf import render
     from vrs_jax.nerf import train as T
@@ -97,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     tmp = out / "metrics.json.tmp"
     tmp.write_text(json.dumps(metrics, indent=1))
     os.replace(tmp, out / "metrics.json")
+    record_run(out, args, cfg, {"train": res.seconds, "compile": res.compile_s,
+                                "render": render_s}, argv)
     kind = "held-out" if len(prep.held_out) else "training"
     print(f"{int(res.state.step)} steps ({res.steps_per_s:.2f} steps/s); {kind} views: "
           f"PSNR {psnr:.2f} dB, SSIM {ssim:.3f} over {len(rows)} view(s); "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import warnings
 
 import numpy as np
@@ -185,6 +186,7 @@ def test_cli_build_skip_protect_export(small_synthetic_scene, tmp_path, capsys):
     args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--out", str(out),
             "--config", "test", "--quiet"]
     assert main(args + ["--export-colmap", str(col)]) == 0
+    assert json.loads((out / "run.json").read_text())["config"]["config"]["name"] == "test"
     m = maps.load_map(out, require_ilm=False)
     assert m.ilm is None and m.has_descriptors and m.config == maps.get_config("test")
     assert maps.read_stats(out)["egm"]["points"] == m.egm.num_points
@@ -194,7 +196,7 @@ def test_cli_build_skip_protect_export(small_synthetic_scene, tmp_path, capsys):
     capsys.readouterr()
     # same settings: skipped
     assert main(args) == 0
-    assert "skipping" in capsys.readouterr().out
+    assert "skipping" in capsys.readouterr().err  # a log line (vrs_jax logger, stderr)
     assert (out / "egm.npz").stat().st_mtime_ns == mtime
     # different settings: refused, map untouched
     assert main(args[:-3] + ["--config", "cpu-small", "--quiet"]) == 2

@@ -38,6 +38,7 @@ def test_train_nerf_cli_writes_map_renders_metrics(dataset, tmp_path, capsys):
             "--far", "6", "--config", "test", "--steps", "20", "--out", str(out), "--quiet"]
     assert train_nerf.main(args) == 0
     assert (out / "ilm.npz").is_file() and (out / "metrics.json").is_file()
+    assert json.loads((out / "run.json").read_text())["config"]["args"]["steps"] == 20
     m = json.loads((out / "metrics.json").read_text())
     assert m["steps"] == 20 and m["held_out"] and len(m["views"]) == 2
     assert len(list((out / "renders").glob("*.png"))) == 2

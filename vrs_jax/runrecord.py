@@ -261,6 +261,8 @@ def setup_logging(verbose: bool = False) -> logging.Logger:
         handler = _Handler(sys.stderr)
         handler.setFormatter(logging.Formatter(_LOG_FORMAT))
         logger.addHandler(handler)
+    elif getattr(handler.stream, "closed", False):  # setStream would flush a closed stream
+        handler.stream = sys.stderr
     else:
         handler.setStream(sys.stderr)  # the current stderr (it may have been replaced)
     level = logging.DEBUG if verbose else logging.INFO

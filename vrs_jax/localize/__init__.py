@@ -6,12 +6,17 @@ matching, PnP), and ``localize(map, query, cfg)``.
     cfg = localize.get_config("cpu-small")            # cfg.source: "render" or "real"
     q = localize.prepare_query(m, gray, K, dist, cfg)
     result = localize.localize(m, q, cfg)
+
+    loc = localize.Localizer("maps/lego", "cpu-small")   # load once, compile once
+    result = loc.localize_image("query.png", K, dist)
 """
 
 from vrs_jax.localize.config import CONFIGS, LocalizeConfig, get_config
+from vrs_jax.localize.localizer import Localizer
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.run import localize, localize_timed, run_stages
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 
-__all__ = ["CONFIGS", "STAGE_NAMES", "LocalizeConfig", "LocalizeResult", "Query", "get_config",
-           "localize", "localize_timed", "prepare_query", "run_stages", "stack_queries"]
+__all__ = ["CONFIGS", "STAGE_NAMES", "LocalizeConfig", "LocalizeResult", "Localizer", "Query",
+           "get_config", "localize", "localize_timed", "prepare_query", "run_stages",
+           "stack_queries"]

@@ -63,7 +63,7 @@ def load_partial(folder: Path) -> Map:
 
 def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool = True,
               minutes: float | None = None, source_options: dict[str, Any] | None = None,
-              log: Callable[[str], None] = print, train_nerf: bool = True) -> Path:
+              log: Callable[[str], None] | None = None, train_nerf: bool = True) -> Path:
     """EGM (with real-patch descriptors), then the ILM; resumable.
 
     Args:
@@ -73,10 +73,13 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
       cfg: the MapConfig (stored by value in the map).
       minutes: optional wall-clock cap on this run's NeRF training; a re-run continues.
       source_options: the reader options that produced ``scene`` (recorded in the map).
+      log: called with each progress line (default: the ``vrs_jax`` logger at INFO level;
+        ``runrecord.setup_logging`` shows it).
       train_nerf: False stops after the EGM (a map without NeRF; a later call continues).
     Returns:
       the folder.
     """
+    log = log or log_.info
     out = Path(out_dir)
     source = scene_source(scene, source_options)
     m, stats = _existing(out, cfg, source)

@@ -1,0 +1,107 @@
+"""experiments.localize with --images/--queries (an hloc query list), and the run record
+(run.json) every experiment writes."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from experiments import evaluate as evaluate_cli
+from experiments import localize as cli
+from experiments import make_synthetic
+from vrs_jax import maps
+from vrs_jax.data.readers import load_scene
+from vrs_jax.errors import VrsError
+from vrs_jax.eval.results import read_results
+from vrs_jax.runrecord import RECORD_FORMAT
+
+
+def _query_list(path, scene, idx):
+    """Two lines: PINHOLE for the first query, SIMPLE_RADIAL (k1 = 0) for the second."""
+    lines = ["# image_name MODEL width height params"]
+    for j, i in enumerate(idx):
+        K = scene.K[i]
+        w, h = (int(s) for s in scene.sizes[i])
+        if j % 2 == 0:
+            params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+            model = "PINHOLE"
+        else:
+            assert K[0, 0] == pytest.approx(K[1, 1])
+            params = [K[0, 0], K[0, 2], K[1, 2], 0.0]
+            model = "SIMPLE_RADIAL"
+        lines.append(f"{scene.names[i]} {model} {w} {h} " + " ".join(f"{p:.10g}" for p in params))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _record(folder):
+    rec = json.loads((folder / "run.json").read_text())
+    assert rec["format"] == RECORD_FORMAT
+    return rec
+
+
+def test_localize_query_list_and_run_records(tiny_map, small_synthetic_scene, tmp_path):
+    queries = load_scene("7scenes", small_synthetic_scene).queries()
+    qlist = _query_list(tmp_path / "queries_with_intrinsics.txt", queries, [3, 0])
+    out = tmp_path / "run"
+    rc = cli.main(["--map", str(tiny_map), "--images", str(small_synthetic_scene), "--queries",
+                   str(qlist), "--out", str(out), "--config", "test", "--mode", "real",
+                   "--quiet", "--no-timing"])
+    assert rc == 0
+    names = [queries.names[3], queries.names[0]]
+    res = read_results(out / "results.txt")
+    assert list(res) == names  # exactly the list's names, in its order
+    s = json.loads((out / "summary.json").read_text())
+    assert s["recall"] is None and s["n_with_ground_truth"] == 0 and s["n_queries"] == 2
+    assert [p["name"] for p in s["per_query"]] == names
+    for p in s["per_query"]:
+        assert set(p) == {"name", "success", "fallback", "inliers", "matches", "error"}
+        assert p["success"] and p["error"] is None and p["inliers"] >= 10
+    rec = _record(out)
+    assert rec["config"]["config"]["source"] == "real"
+    assert rec["config"]["args"]["queries"] == str(qlist) and rec["argv"][-1] == "--no-timing"
+
+    # the poses are those of the dataset (the list's intrinsics are the scene's)
+    ev = tmp_path / "eval"
+    ev.mkdir()
+    assert evaluate_cli.main(["--results", str(out / "results.txt"), "--format", "7scenes",
+                              "--root", str(small_synthetic_scene), "--json",
+                              str(ev / "eval.json")]) == 0
+    doc = json.loads((ev / "eval.json").read_text())
+    assert all(doc["per_query"][n]["t_cm"] < 5 for n in names)  # the others: no result
+    assert _record(ev)["config"]["args"]["fmt"] == "7scenes"
+
+
+def test_localize_query_list_refusals(tiny_map, small_synthetic_scene, tmp_path, capsys):
+    m = maps.load_map(tiny_map, descriptors=False)
+    scene = load_scene("7scenes", small_synthetic_scene)
+    ref = int(np.flatnonzero(~scene.is_query)[0])
+    assert scene.names[ref] in m.names
+    qlist = _query_list(tmp_path / "q.txt", scene, [ref])
+    base = ["--map", str(tiny_map), "--out", str(tmp_path / "o"), "--quiet"]
+    assert cli.main(base + ["--images", str(small_synthetic_scene), "--queries",
+                            str(qlist)]) == 2
+    assert "map images" in capsys.readouterr().err
+    assert cli.main(base + ["--images", str(small_synthetic_scene), "--queries", str(qlist),
+                            "--format", "7scenes", "--root", str(small_synthetic_scene)]) == 2
+    assert "exclusive" in capsys.readouterr().err
+    assert cli.main(base + ["--queries", str(qlist)]) == 2
+    assert "--images" in capsys.readouterr().err
+    # the same name in another folder is another photo: not refused
+    one = scene.subset(np.array([ref]))
+    other = dataclasses.replace(one, root=tmp_path, image_paths=[tmp_path / scene.names[ref]])
+    cli.refuse_map_images(m, other)
+    with pytest.raises(VrsError, match="map images"):
+        cli.refuse_map_images(m, one)
+
+
+def test_make_synthetic_writes_run_record(tmp_path):
+    out = tmp_path / "scene"
+    assert make_synthetic.main(["--out", str(out), "--size", "32x24", "--n-ref", "2",
+                                "--n-query", "1"]) == 0
+    rec = _record(out)
+    assert rec["config"]["config"]["width"] == 32 and rec["config"]["args"]["n_ref"] == 2
+    assert rec["timings_s"]["total"] > 0

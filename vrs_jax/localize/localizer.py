@@ -1,0 +1,189 @@
+"""``Localizer``: load a map once, compile once, localize images.
+
+    loc = Localizer("maps/room", "cpu-small")           # or a Map, or a LocalizeConfig
+    loc.warmup(320, 240)                                 # optional: compile before the first image
+    r = loc.localize_image("query.png", K, dist)         # LocalizeResult of numpy values
+    results, errors = loc.localize_batch(paths, Ks, dists)
+
+A thin wrapper around :func:`~vrs_jax.localize.query.prepare_query`,
+:func:`~vrs_jax.localize.run.localize` and :func:`~vrs_jax.localize.query.stack_queries`:
+every query is padded to ``cfg.query_keypoints``, so one compilation serves every image (and
+one per batch size for ``localize_batch``, which runs ``jax.vmap(localize)`` over the batch).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from vrs_jax.data.images import read_gray
+from vrs_jax.errors import VrsError
+from vrs_jax.localize.config import LocalizeConfig, get_config
+from vrs_jax.localize.query import Query, prepare_query, stack_queries
+from vrs_jax.localize.run import _localize, localize
+from vrs_jax.localize.stages import LocalizeResult
+from vrs_jax.maps import Map, load_map
+
+# The principal point must lie within this fraction of the image size from the image centre
+# (|cx - w/2| <= f * w and |cy - h/2| <= f * h). Real cameras keep it within a few percent of
+# the centre; a K meant for another image size (e.g. the full-resolution K with a half-size
+# image) puts it at the border or outside, which 0.25 catches.
+PRINCIPAL_POINT_TOLERANCE = 0.25
+
+LUMA = np.asarray([0.299, 0.587, 0.114], np.float32)  # as vrs_jax.data.images.read_gray
+
+
+def to_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """[H, W] or [H, W, 3] array (uint8 in 0..255, or float in [0, 1]) -> float32 grey
+    [H, W] in [0, 1] (luma as :func:`~vrs_jax.data.images.read_gray`)."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 3:
+        pass
+    elif a.ndim != 2:
+        raise VrsError(f"{name}: expected an [H, W] grey or [H, W, 3] RGB array, got shape "
+                       f"{a.shape}")
+    if a.dtype == np.uint8:
+        a = a.astype(np.float32) / 255.0
+    elif a.dtype == np.uint16:
+        a = a.astype(np.float32) / 65535.0
+    else:
+        a = a.astype(np.float32)
+    return a @ LUMA if a.ndim == 3 else a
+
+
+def check_intrinsics(width: int, height: int, K: np.ndarray, name: str = "image") -> None:
+    """VrsError naming ``name`` when the image size contradicts ``K`` [3, 3]: non-positive
+    focal lengths, or a principal point outside the image or farther than
+    :data:`PRINCIPAL_POINT_TOLERANCE` of the size from its centre."""
+    K = np.asarray(K, np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise VrsError(f"{name}: K must be a finite [3, 3] matrix, got shape {K.shape}")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if fx <= 0 or fy <= 0:
+        raise VrsError(f"{name}: focal lengths must be positive, got fx={fx:g} fy={fy:g}")
+    tol = PRINCIPAL_POINT_TOLERANCE
+    if abs(cx - width / 2) > tol * width or abs(cy - height / 2) > tol * height:
+        raise VrsError(f"{name}: image is {width}x{height} but K's principal point is "
+                       f"({cx:g}, {cy:g}): K belongs to another image size")
+
+
+def _resolve_config(cfg: LocalizeConfig | str | None, source: str | None) -> LocalizeConfig:
+    if cfg is None:
+        cfg = get_config("cpu-small")
+    elif isinstance(cfg, str):
+        cfg = get_config(cfg)
+    elif not isinstance(cfg, LocalizeConfig):
+        raise VrsError(f"cfg must be a LocalizeConfig, a config name or None, got {type(cfg)}")
+    if source is not None:
+        cfg = dataclasses.replace(cfg, source=source)
+    return cfg
+
+
+class Localizer:
+    """A map and a query-time config, ready to localize images.
+
+    Args:
+      map_or_dir: a map folder (loaded once, with the real-patch descriptors only when the
+        source is "real") or a loaded :class:`~vrs_jax.maps.Map`.
+      cfg: a LocalizeConfig, the name of one (``localize.CONFIGS``) or None ("cpu-small").
+      source: "render" (VRS-NeRF) or "real" (the real-patch baseline); None keeps the
+        config's (the named configs render).
+    """
+
+    def __init__(self, map_or_dir: Map | str | Path, cfg: LocalizeConfig | str | None = None,
+                 source: str | None = "render"):
+        self.cfg = _resolve_config(cfg, source)
+        if isinstance(map_or_dir, Map):
+            self.map = map_or_dir
+        else:
+            self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real")
+        cfg_ = self.cfg
+        self._batched = jax.jit(jax.vmap(lambda m, q: _localize(m, q, cfg_), in_axes=(None, 0)))
+
+    # ------------------------------------------------------------------ preparation
+
+    def _gray(self, image: str | Path | np.ndarray, name: str) -> np.ndarray:
+        if isinstance(image, (str, Path)):
+            return read_gray(image)  # VrsError naming the path when missing or unreadable
+        return to_gray(image, name)
+
+    def prepare(self, image: str | Path | np.ndarray, K: np.ndarray,
+                dist: np.ndarray | None = None, name: str | None = None) -> Query:
+        """One image -> Query (host work). VrsError for an unreadable image or a size
+        that contradicts K."""
+        name = name or (str(image) if isinstance(image, (str, Path)) else "image")
+        gray = self._gray(image, name)
+        h, w = gray.shape
+        check_intrinsics(w, h, K, name)
+        d = None if dist is None else np.asarray(dist, np.float64)
+        if d is not None and d.shape != (5,):
+            raise VrsError(f"{name}: dist must be [5] (k1, k2, p1, p2, k3), got {d.shape}")
+        return prepare_query(self.map, gray, np.asarray(K, np.float64), d, self.cfg)
+
+    # ------------------------------------------------------------------ localization
+
+    def localize_image(self, image: str | Path | np.ndarray, K: np.ndarray,
+                       dist: np.ndarray | None = None) -> LocalizeResult:
+        """Localize one image.
+
+        Args:
+          image: an image file, or an [H, W] grey / [H, W, 3] RGB array (uint8, or float in
+            [0, 1]).
+          K: [3, 3] intrinsics of that image size (COLMAP pixel convention).
+          dist: [5] OpenCV distortion (k1, k2, p1, p2, k3) or None.
+        Returns:
+          LocalizeResult with numpy values (world-to-camera R [3, 3], t [3], flags, counts).
+        Raises:
+          VrsError naming the path for an unreadable image, or the image when its size
+          contradicts K.
+        """
+        q = self.prepare(image, K, dist)
+        return jax.device_get(localize(self.map, q, self.cfg))
+
+    def localize_batch(self, images: Sequence[Any], Ks: Sequence[np.ndarray],
+                       dists: Sequence[np.ndarray | None] | None = None
+                       ) -> tuple[list[LocalizeResult | None], list[str | None]]:
+        """Localize several images in one vmapped call.
+
+        Args:
+          images: N image files or arrays (as :meth:`localize_image`; sizes may differ).
+          Ks: N [3, 3] intrinsics; dists: N [5] distortions (or None entries), or None.
+        Returns:
+          (results, errors): per image a LocalizeResult of numpy values, or None with the
+          reason (the VrsError's message) in ``errors`` at the same index; the other images are
+          localized. Compiled once per number of usable images.
+        """
+        n = len(images)
+        if len(Ks) != n or (dists is not None and len(dists) != n):
+            raise VrsError(f"localize_batch: {n} images but {len(Ks)} K and "
+                           f"{'no' if dists is None else len(dists)} distortions")
+        queries: list[Query] = []
+        ok: list[int] = []
+        errors: list[str | None] = [None] * n
+        for i in range(n):
+            name = str(images[i]) if isinstance(images[i], (str, Path)) else f"image {i}"
+            try:
+                queries.append(self.prepare(images[i], Ks[i],
+                                            None if dists is None else dists[i], name))
+                ok.append(i)
+            except VrsError as e:
+                errors[i] = str(e)
+        results: list[LocalizeResult | None] = [None] * n
+        if queries:
+            batch = jax.device_get(self._batched(self.map, stack_queries(queries)))
+            for j, i in enumerate(ok):
+                results[i] = jax.tree.map(lambda x, j=j: x[j], batch)
+        return results, errors
+
+    def warmup(self, width: int, height: int) -> None:
+        """Compile query preparation and ``localize`` for images of this size (a blank image:
+        no keypoints, so a fallback result, with the shapes of any query)."""
+        f = float(max(width, height))
+        K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+        q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")
+        jax.block_until_ready(localize(self.map, q, self.cfg))
