@@ -138,4 +138,4 @@ def test_named_config_comments_match_values():
             cpu.nerf.max_steps) == (3, 128, 32, 4000)
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
             test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
-        128, 64, 9, 32, 300)
+        128, 64, 9, 64, 800)

@@ -39,8 +39,8 @@ CONFIGS: dict[str, MapConfig] = {
     # Mip-NeRF with 32 + 32 samples, 4000 steps (about 6-7 minutes).
     "cpu-small": MapConfig("cpu-small", egm_build.get_config("cpu-small"),
                            nerf_config.get_config("cpu-small")),
-    # Tests and `demo --quick`: 128 keypoints detected and 64 kept, 9x9 patches, a 2x32 NeRF,
-    # 300 steps (seconds per stage).
+    # Tests and `demo --quick`: 128 keypoints detected and 64 kept, 9x9 patches, a 3x64 NeRF,
+    # 800 steps (about a minute per map on 2 cores).
     "test": MapConfig("test", egm_build.get_config("test"), nerf_config.get_config("test")),
 }
 
