@@ -86,3 +86,32 @@ def test_warmup_and_render_source(tiny_map):
     loc = Localizer(maps.load_map(tiny_map), localize.get_config("test"), source=None)
     assert loc.cfg.source == "render"
     loc.warmup(160, 120)  # blank image: compiles, no failure
+
+
+def test_descriptor_cache_is_lru_within_budget():
+    from vrs_jax.localize.cache import DescriptorCache
+
+    c = DescriptorCache(budget_mb=3 * 4 * 8 * 2 / 1e6)  # three [4, 8] float16 entries
+    for i in range(3):
+        c.put(i, np.full((4, 8), i, np.float32))
+    assert c.get(0) is not None  # 0 becomes the most recent
+    c.put(3, np.ones((4, 8)))  # evicts 1, the least recently used
+    assert c.get(1) is None and c.get(2) is not None and c.get(3) is not None
+    assert c.bytes <= c.budget and len(c) == 3 and c.evictions == 1
+    assert DescriptorCache(0).budget == 0
+
+
+def test_cached_render_mode_equals_uncached_and_hits(tiny_map, queries):
+    plain = Localizer(tiny_map, "test")
+    cached = Localizer(plain.map, "test", cache_mb=5)
+    path, K, dist = queries.image_paths[0], queries.K[0], queries.dist[0]
+    a = plain.localize_image(path, K, dist)
+    b = cached.localize_image(path, K, dist)  # cold: renders its references
+    assert cached.cache.misses == len(np.asarray(b.retrieved)) and cached.cache.hits == 0
+    c = cached.localize_image(path, K, dist)  # warm: renders nothing
+    assert cached.cache.hits == len(np.asarray(c.retrieved))
+    np.testing.assert_array_equal(np.asarray(a.retrieved), np.asarray(b.retrieved))
+    # the cache stores float16 descriptors: the same pose to well under a centimetre
+    for r in (b, c):
+        assert bool(r.success) == bool(a.success)
+        np.testing.assert_allclose(np.asarray(r.t), np.asarray(a.t), atol=5e-3)

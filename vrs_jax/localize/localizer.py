@@ -1,6 +1,7 @@
 """``Localizer``: load a map once, compile once, localize images.
 
     loc = Localizer("maps/room", "cpu-small")           # or a Map, or a LocalizeConfig
+    loc = Localizer("maps/room", cache_mb=50)           # a query stream: cache rendered refs
     loc.warmup(320, 240)                                 # optional: compile before the first image
     r = loc.localize_image("query.png", K, dist)         # LocalizeResult of numpy values
     results, errors = loc.localize_batch(paths, Ks, dists)
@@ -19,13 +20,15 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
+from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
-from vrs_jax.localize.run import _localize, localize
+from vrs_jax.localize.run import JITTED_STAGES, _localize, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map, load_map
 
@@ -93,11 +96,16 @@ class Localizer:
       cfg: a LocalizeConfig, the name of one (``localize.CONFIGS``) or None ("cpu-small").
       source: "render" (VRS-NeRF) or "real" (the real-patch baseline); None keeps the
         config's (the named configs render).
+      cache_mb: render mode: keep the rendered descriptors of recently retrieved reference
+        images within this many MB (:class:`~vrs_jax.localize.cache.DescriptorCache`); 0: no
+        cache, every query renders its references (the fused jitted ``localize``).
     """
 
     def __init__(self, map_or_dir: Map | str | Path, cfg: LocalizeConfig | str | None = None,
-                 source: str | None = "render"):
+                 source: str | None = "render", cache_mb: float = 0.0):
         self.cfg = _resolve_config(cfg, source)
+        self.cache = (DescriptorCache(cache_mb) if cache_mb > 0 and self.cfg.source == "render"
+                      else None)
         if isinstance(map_or_dir, Map):
             self.map = map_or_dir
         else:
@@ -143,7 +151,28 @@ class Localizer:
           contradicts K.
         """
         q = self.prepare(image, K, dist)
-        return jax.device_get(localize(self.map, q, self.cfg))
+        if self.cache is None:
+            return jax.device_get(localize(self.map, q, self.cfg))
+        return jax.device_get(self._localize_cached(q))
+
+    def _localize_cached(self, q: Query) -> LocalizeResult:
+        """Retrieval, then each retrieved reference's descriptors from the cache or rendered
+        and described (one jitted call per missing reference), then the remaining stages."""
+        s = run_stages(self.map, q, self.cfg, until="retrieval", jitted=JITTED_STAGES)
+        idx = np.asarray(s["idx"])
+        descs = []
+        for i in idx:
+            d = self.cache.get(int(i))
+            if d is None:
+                one = {"idx": jnp.asarray([i], jnp.int32)}
+                one.update(JITTED_STAGES["render"](self.map, q, self.cfg, one))
+                d = np.asarray(JITTED_STAGES["describe"](self.map, q, self.cfg, one)["desc"][0])
+                self.cache.put(int(i), d)
+            descs.append(d)
+        s["desc"] = jnp.asarray(np.stack(descs))
+        s["desc_mask"] = self.map.egm.kp_mask[s["idx"]]
+        return run_stages(self.map, q, self.cfg, jitted=JITTED_STAGES, state=s,
+                          after="describe")["result"]
 
     def localize_batch(self, images: Sequence[Any], Ks: Sequence[np.ndarray],
                        dists: Sequence[np.ndarray | None] | None = None

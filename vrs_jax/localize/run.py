@@ -20,15 +20,20 @@ from vrs_jax.maps import Map
 
 
 def run_stages(m: Map, q: Query, cfg: LocalizeConfig, until: str | None = None,
-               jitted: dict | None = None, times: dict | None = None) -> st.State:
+               jitted: dict | None = None, times: dict | None = None,
+               state: st.State | None = None, after: str | None = None) -> st.State:
     """Run the config's stages in order (up to and including ``until``); returns the state.
 
     ``jitted``: stage name -> compiled stage to call instead (``localize_timed``); ``times``:
-    filled with wall seconds per stage (each stage's outputs waited for).
+    filled with wall seconds per stage (each stage's outputs waited for). ``state`` and
+    ``after``: resume from a state holding the outputs of the stages up to ``after`` (e.g.
+    reference descriptors taken from a cache instead of rendered).
     """
     st.check(m, cfg)
-    s: st.State = {}
-    for name, fn in st.stages_for(cfg):
+    s: st.State = dict(state or {})
+    names = [n for n, _ in st.stages_for(cfg)]
+    skip = names.index(after) + 1 if after is not None else 0
+    for name, fn in st.stages_for(cfg)[skip:]:
         f = jitted[name] if jitted else fn
         t0 = time.perf_counter()
         out = f(m, q, cfg, s)
@@ -58,6 +63,7 @@ Returns:
 """
 
 _JITTED = {name: jax.jit(fn, static_argnames=("cfg",)) for name, fn in st.STAGES}
+JITTED_STAGES = _JITTED  # one jitted function per stage (compiled once per map and config)
 
 
 def localize_timed(m: Map, q: Query, cfg: LocalizeConfig
