@@ -247,3 +247,18 @@ def test_environment_is_the_run_record_environment_plus_extras():
     assert set(env["versions"]) == set(runrecord.versions()) | {"matplotlib"}
     assert env["code"]["vrs_jax_source_sha256"] == common.source_hash()
     assert env["code"]["commit"] == runrecord.git_info()["commit"]
+
+
+def test_stream_benchmark_cold_and_warm(base, tmp_path):
+    from benchmarks import stream
+
+    out = tmp_path / "stream.json"
+    assert stream.main(base + ["--scenes", "synthetic", "--cache-mb", "5",
+                               "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    kinds = [(r["method"], r["pass"]) for r in rows]
+    assert kinds == [("real", "-"), ("render, no cache", "-"), ("render, cache", "cold"),
+                     ("render, cache", "warm")]
+    warm = rows[-1]
+    assert warm["warm_hits"] > 0 and warm["cache"]["bytes"] <= warm["cache"]["budget_bytes"]
+    assert all(_finite(r["median_s_per_query"]) for r in rows)
