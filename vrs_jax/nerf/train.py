@@ -20,7 +20,10 @@ import dataclasses
 import functools
 import json
 import math
+import os
+import shutil
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -34,6 +37,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from vrs_jax import fileio
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf import clusters as clusters_lib
@@ -348,21 +352,47 @@ def make_eval_fn(cfg: NerfConfig) -> Callable[[Any, ClusterData, dict[str, Array
 
 
 def checkpoint_manager(ckpt_dir: str | Path, cfg: NerfConfig) -> ocp.CheckpointManager:
-    """Synchronous orbax manager (atomic per step: tmp dir + rename on completion)."""
+    """Synchronous orbax manager (atomic per step: tmp dir + rename on completion).
+
+    Raises VrsError naming the folder when it cannot be created (read-only, not a folder).
+    """
+    d = Path(ckpt_dir).absolute()
+    if d.exists() and not d.is_dir():
+        raise VrsError("checkpoint path exists and is not a folder", d)
     opts = ocp.CheckpointManagerOptions(max_to_keep=cfg.keep_checkpoints, create=True,
                                         enable_async_checkpointing=False)
-    return ocp.CheckpointManager(Path(ckpt_dir).absolute(), options=opts,
-                                 item_names=("state", "meta"))
+    try:
+        return ocp.CheckpointManager(d, options=opts, item_names=("state", "meta"))
+    except Exception as e:  # noqa: BLE001 - orbax wraps OSErrors in several types
+        raise VrsError(f"cannot open the checkpoint folder: {fileio.reason(e)}", d) from None
+
+
+def _remove_partial(directory: Path) -> None:
+    """Delete orbax's temporary step folders left by a failed save."""
+    for p in directory.glob("*.orbax-checkpoint-tmp*"):
+        shutil.rmtree(p, ignore_errors=True)
 
 
 def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[str, Any]
                     ) -> None:
+    """Save ``state`` as step ``state.step``, synchronously.
+
+    Raises VrsError (one line naming the checkpoint folder: disk full, permission denied...)
+    when the save fails; orbax's partial temporary folder is removed, earlier checkpoints
+    stay intact.
+    """
     step = int(state.step)
     tree = {"step": state.step, "params": state.params, "opt_state": state.opt_state,
             "key": state.key}
-    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
-                                            meta=ocp.args.JsonSave(meta)), force=True)
-    mngr.wait_until_finished()
+    directory = Path(str(mngr.directory))
+    try:
+        mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
+                                                meta=ocp.args.JsonSave(meta)), force=True)
+        mngr.wait_until_finished()
+    except Exception as e:  # noqa: BLE001 - orbax/tensorstore wrap the OSError
+        _remove_partial(directory)
+        raise VrsError(f"cannot save the checkpoint of step {step}: {fileio.reason(e)}",
+                       directory) from None
 
 
 def restore_checkpoint(mngr: ocp.CheckpointManager, template: TrainState,
@@ -388,7 +418,59 @@ def restore_checkpoint(mngr: ocp.CheckpointManager, template: TrainState,
     if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves
                if jnp.issubdtype(x.dtype, jnp.floating)):
         raise VrsError("checkpoint holds non-finite values", where)
+    if int(tree["step"]) != int(step):
+        raise VrsError(f"checkpoint records step {int(tree['step'])}, not {step}", where)
     return TrainState(tree["step"], tree["params"], tree["opt_state"], tree["key"]), meta
+
+
+def restore_latest(mngr: ocp.CheckpointManager, template: TrainState,
+                   warn: Callable[[str], None] | None = None
+                   ) -> tuple[TrainState, dict[str, Any], list[int]]:
+    """Restore the newest checkpoint that reads back intact.
+
+    Tries the steps newest first; each one that fails (corrupt, truncated, non-finite) is
+    reported through ``warn`` naming its folder, and the next older one is tried.
+
+    Returns:
+      (state, meta, bad steps skipped, newest first).
+    Raises:
+      VrsError naming the checkpoint folder when none restores.
+    """
+    warn = warn or (lambda s: warnings.warn(s, stacklevel=3))
+    steps = sorted(mngr.all_steps(), reverse=True)
+    bad: list[int] = []
+    for s in steps:
+        try:
+            state, meta = restore_checkpoint(mngr, template, s)
+        except VrsError as e:
+            bad.append(s)
+            warn(f"warning: {e}; trying an earlier checkpoint")
+            continue
+        if bad:
+            warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
+                 f"damaged step(s) {', '.join(map(str, bad))})")
+        return state, meta, bad
+    raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or incompatible "
+                   "checkpoint data); move the folder away to train from scratch",
+                   Path(str(mngr.directory)))
+
+
+def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointManager:
+    """Move damaged step folders out of the manager's folder (to ``<folder>-damaged/``, kept
+    for inspection) so that training can save those steps again; returns a reloaded manager.
+    """
+    directory = Path(str(mngr.directory))
+    aside = directory.with_name(directory.name + "-damaged")
+    try:
+        for s in steps:
+            aside.mkdir(exist_ok=True)
+            dest = aside / f"{s}-{time.strftime('%Y%m%d-%H%M%S')}"
+            os.replace(directory / str(s), dest)  # fileio-exempt: moves a folder
+    except OSError as e:
+        raise VrsError(f"cannot move a damaged checkpoint aside: {fileio.reason(e)}",
+                       directory) from None
+    mngr.reload()
+    return mngr
 
 
 # ----------------------------------------------------------------------------- loop
@@ -439,7 +521,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                            "folder", Path(out_dir) / "checkpoints")
         if resume and mngr.latest_step() is not None:
             try:
-                state, old = restore_checkpoint(mngr, state)
+                state, old, bad = restore_latest(mngr, state, warn=log)
                 # a longer run of the same map continues (only the step budget differs)
                 same = {**(old.get("config") or {}), "max_steps": cfg.max_steps}
                 if json.dumps(same, sort_keys=True) != json.dumps(meta["config"],
@@ -449,6 +531,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                 if old.get("scene") != meta["scene"]:
                     raise VrsError("checkpoint belongs to a different scene or clustering",
                                    Path(out_dir) / "checkpoints")
+                if bad:
+                    mngr = set_aside(mngr, bad)
             except VrsError:
                 mngr.close()
                 raise
