@@ -369,7 +369,7 @@ def test_kill9_during_training_then_resume(toy_nerf, tmp_path):
     """SIGKILL mid-training leaves whole checkpoints only; the same command resumes to the
     final step."""
     out = tmp_path / "run"
-    args = nerf_args(toy_nerf, out, 300, "--set", "checkpoint_every=10", "--views", "1")
+    args = nerf_args(toy_nerf, out, 150, "--set", "checkpoint_every=10", "--views", "1")
     code = f"import sys; sys.argv = ['x'] + {args!r}; from experiments import train_nerf; " \
            "raise SystemExit(train_nerf.main())"
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
@@ -396,7 +396,7 @@ def test_kill9_during_training_then_resume(toy_nerf, tmp_path):
     r = run_cli("experiments.train_nerf", args)
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr
-    assert json.loads((out / "metrics.json").read_text())["steps"] == 300
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 150
 
 
 def test_localize_bad_query_among_good_and_no_overwrite(tiny_map, small_synthetic_scene,

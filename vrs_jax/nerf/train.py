@@ -16,12 +16,16 @@ after every step and stops before anything non-finite is saved.
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import functools
 import json
+import logging
 import math
 import os
+import resource
 import shutil
+import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -359,6 +363,7 @@ def checkpoint_manager(ckpt_dir: str | Path, cfg: NerfConfig) -> ocp.CheckpointM
     d = Path(ckpt_dir).absolute()
     if d.exists() and not d.is_dir():
         raise VrsError("checkpoint path exists and is not a folder", d)
+    fileio.check_writable(d)  # permission / read-only: one line before orbax starts
     opts = ocp.CheckpointManagerOptions(max_to_keep=cfg.keep_checkpoints, create=True,
                                         enable_async_checkpointing=False)
     try:
@@ -367,10 +372,84 @@ def checkpoint_manager(ckpt_dir: str | Path, cfg: NerfConfig) -> ocp.CheckpointM
         raise VrsError(f"cannot open the checkpoint folder: {fileio.reason(e)}", d) from None
 
 
-def _remove_partial(directory: Path) -> None:
-    """Delete orbax's temporary step folders left by a failed save."""
-    for p in directory.glob("*.orbax-checkpoint-tmp*"):
-        shutil.rmtree(p, ignore_errors=True)
+def _from_orbax(tb) -> bool:
+    while tb is not None:
+        f = tb.tb_frame.f_code.co_filename
+        if "orbax" in f or "tensorstore" in f:
+            return True
+        tb = tb.tb_next
+    return False
+
+
+class _DropOrbaxNoise(logging.Filter):
+    """Drops log records about orbax's work (its worker threads and asyncio tasks log each
+    failed write with a full traceback, while the caller gets the exception anyway)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "orbax" in record.pathname:
+            return False
+        exc = record.exc_info[2] if record.exc_info else None
+        if record.exc_info and str(record.exc_info[1]) == "Event loop is closed":
+            return False  # orbax's cancelled writes completing into their closed loops
+        return not (_from_orbax(exc) or "orbax" in str(record.msg) or
+                    any("orbax" in str(a) for a in (record.args or ()) if isinstance(a, str)))
+
+
+_DROP_ORBAX = _DropOrbaxNoise()
+_FAILED = {"save": False}
+
+
+def _quiet_orbax_logs() -> None:
+    """Drop orbax's own log records of a failed write (its threads log the failure with full
+    tracebacks; the caller gets one VrsError line). Other records still show."""
+    for name in ("absl", "asyncio", "concurrent.futures"):
+        logging.getLogger(name).addFilter(_DROP_ORBAX)
+    for h in [logging.lastResort, *logging.getLogger().handlers]:
+        if h is not None:
+            h.addFilter(_DROP_ORBAX)
+
+
+def _preflight(directory: Path, tree: Any, step: int) -> None:
+    """Refuse a save that cannot fit before orbax starts it (orbax's failure midway is noisy):
+    free space on the device and the process's file size limit against the state's bytes."""
+    need = sum(int(np.asarray(x).nbytes) for x in jax.tree.leaves(tree))
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        free = None
+    if free is not None and free < need + (1 << 20):
+        raise VrsError(f"cannot save the checkpoint of step {step}: no space left on the device "
+                       f"(needs about {need / 1e6:.1f} MB, {free / 1e6:.1f} MB free)", directory)
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if soft != resource.RLIM_INFINITY and soft < need:
+        raise VrsError(f"cannot save the checkpoint of step {step}: file too large for this "
+                       f"file system or limit (disk full?) (needs about {need / 1e6:.1f} MB, "
+                       f"file size limit {soft} bytes)", directory)
+
+
+def _remove_partial(directory: Path, wait: bool = False) -> None:
+    """Delete orbax's temporary step folders left by a failed save (``wait``: first let
+    orbax's worker threads end, they may still be writing; once more at exit)."""
+    if wait:
+        for t in threading.enumerate():
+            if t is not threading.current_thread() and "orbax" in type(t).__module__:
+                try:
+                    t.join(timeout=10)
+                except Exception:  # noqa: BLE001, S110 - orbax's join re-raises the failure
+                    pass
+
+    def remove():
+        for _ in range(5):  # tensorstore may still add files while the folder goes
+            left = list(directory.glob("*.orbax-checkpoint-tmp*"))
+            if not left:
+                return
+            for p in left:
+                shutil.rmtree(p, ignore_errors=True)
+            time.sleep(0.05)
+
+    remove()
+    if wait:
+        atexit.register(remove)
 
 
 def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[str, Any]
@@ -385,11 +464,14 @@ def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[s
     tree = {"step": state.step, "params": state.params, "opt_state": state.opt_state,
             "key": state.key}
     directory = Path(str(mngr.directory))
+    _preflight(directory, tree, step)
+    _quiet_orbax_logs()
     try:
         mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
                                                 meta=ocp.args.JsonSave(meta)), force=True)
         mngr.wait_until_finished()
     except Exception as e:  # noqa: BLE001 - orbax/tensorstore wrap the OSError
+        _FAILED["save"] = True
         _remove_partial(directory)
         raise VrsError(f"cannot save the checkpoint of step {step}: {fileio.reason(e)}",
                        directory) from None
@@ -603,7 +685,13 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     finally:
         bar.close()
         if mngr is not None:
-            mngr.close()
+            try:
+                mngr.close()
+            except Exception:  # noqa: BLE001
+                if not _FAILED["save"]:  # after a failed save, close re-raises it
+                    raise
+            if _FAILED["save"]:  # orbax's threads may have written on after the failure
+                _remove_partial(Path(str(mngr.directory)), wait=True)
     # Training throughput: steps after the first (compiling) one, with evaluation and
     # checkpointing excluded.
     timed_steps = done - steps_after_compile
