@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from experiments.common import parse_opts, record_run, start_run
+from vrs_jax import fileio
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results
@@ -144,6 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_run(args)
+    if args.json:  # before any work: a folder that cannot take the report fails now
+        if not Path(args.json).parent.is_dir():
+            raise VrsError("output folder not found", Path(args.json).parent)
+        fileio.check_writable(Path(args.json).parent)
     results = read_results(args.results)
     opts = parse_opts(args.opt)
     if args.query_every is not None:
@@ -173,15 +176,8 @@ def main(argv: list[str] | None = None) -> int:
             raise VrsError("output folder not found", out.parent)
         doc = {"results": str(args.results), "format": args.fmt, "root": str(args.root),
                "options": opts, **report}
-        fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp", dir=out.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                json.dump(metrics.json_ready(doc), f, indent=2, allow_nan=False)
-                f.write("\n")
-            os.replace(tmp, out)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        fileio.write_text(out, json.dumps(metrics.json_ready(doc), indent=2, allow_nan=False)
+                          + "\n")
         record_run(out.parent, args, None, None, argv)
     return 0
 

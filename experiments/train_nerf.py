@@ -13,14 +13,13 @@ Writes into --out only:
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from experiments.common import add_scene_args, load_scene_from_args, record_run, start_run
+from vrs_jax import fileio
 from vrs_jax.errors import VrsError, cli_main
 
 
@@ -64,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_resume and (out / "checkpoints").exists():
         raise VrsError("--no-resume given but the folder holds checkpoints; use another --out",
                        out / "checkpoints")
-    out.mkdir(parents=True, exist_ok=True)
+    fileio.check_writable(out)  # before any work starts
     scene = load_scene_from_args(args)
     prep = T.prepare(scene, cfg, near=args.near, far=args.far)
     print(f"{len(prep.refs)} training / {len(prep.held_out)} held-out images, "
@@ -96,9 +95,7 @@ def main(argv: list[str] | None = None) -> int:
                "compile_s": res.compile_s, "render_s": render_s, "mean_psnr": psnr,
                "mean_ssim": ssim, "held_out": len(prep.held_out) > 0, "views": rows,
                "history": res.history, "ilm_bytes": ilm_lib.map_bytes(ilm_path)}
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=1))
-    os.replace(tmp, out / "metrics.json")
+    fileio.write_json(out / "metrics.json", metrics)
     record_run(out, args, cfg, {"train": res.seconds, "compile": res.compile_s,
                                 "render": render_s}, argv)
     kind = "held-out" if len(prep.held_out) else "training"

@@ -31,8 +31,39 @@ def _reason(e: OSError) -> str:
     if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return "permission denied (read-only folder?)"
     if e.errno == errno.EFBIG:
-        return "file too large for this file system or limit"
+        return "file too large for this file system or limit (disk full?)"
+    if e.errno == errno.ENOTDIR:
+        return "a parent of this path is a file, not a folder"
     return e.strerror or type(e).__name__
+
+
+def os_error_in(e: BaseException) -> OSError | None:
+    """The first OSError with an errno in ``e``'s cause/context chain (libraries such as orbax
+    wrap the file system's error), or None."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno is not None:
+            return e
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def reason(e: BaseException) -> str:
+    """A short human reason for a failed write/read: from the OSError in ``e``'s chain, else
+    the first line of the message."""
+    os_e = os_error_in(e)
+    if os_e is not None:
+        return _reason(os_e)
+    text = str(e).splitlines()[0][:160] if str(e) else ""
+    low = str(e).lower()
+    if "no space left" in low:
+        return "no space left on the device"
+    if "file too large" in low:
+        return "file too large for this file system or limit (disk full?)"
+    if "permission denied" in low or "read-only file system" in low:
+        return "permission denied (read-only folder?)"
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
 def write_atomic(path: str | Path, write: Callable[[IO[bytes]], Any]) -> Path:
@@ -64,6 +95,18 @@ def write_bytes(path: str | Path, data: bytes) -> Path:
 def write_text(path: str | Path, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     return write_bytes(path, text.encode())
+
+
+def write_image(path: str | Path, image: np.ndarray) -> Path:
+    """Encode ``image`` (uint8 BGR [H, W, 3], or uint8/uint16 [H, W]) in the format of
+    ``path``'s suffix (OpenCV) and write it atomically."""
+    import cv2
+
+    p = Path(path)
+    ok, buf = cv2.imencode(p.suffix or ".png", np.ascontiguousarray(image))
+    if not ok:
+        raise VrsError("cannot encode the image for this file type", p)
+    return write_bytes(p, buf.tobytes())
 
 
 def json_ready(obj: Any) -> Any:
@@ -121,6 +164,11 @@ def check_writable(folder: str | Path) -> Path:
     except OSError as e:
         raise VrsError(f"cannot write here: {_reason(e)}", d) from None
     return d
+
+
+def umask() -> int:
+    """The process's umask (read without changing it)."""
+    return _umask()
 
 
 def _umask() -> int:

@@ -29,6 +29,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from vrs_jax import fileio
+
 RECORD_FORMAT = "vrs-jax run record"
 RECORD_VERSION = 1
 RECORD_NAME = "run.json"
@@ -228,6 +230,7 @@ def write_run_record(out_dir: str | Path, record: Mapping[str, Any]) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o644 & ~fileio.umask())  # mkstemp creates 0600; records are 0644
         n = 0
         while True:
             target = d / (RECORD_NAME if n == 0 else f"run-{n}.json")

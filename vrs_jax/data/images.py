@@ -7,7 +7,27 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vrs_jax import fileio
 from vrs_jax.errors import VrsError
+
+
+def same_aspect(from_size: tuple[float, float], to_size: tuple[float, float]) -> bool:
+    """Whether ``to_size`` (w, h) is ``from_size`` scaled by one factor, up to the rounding of
+    one axis to whole pixels (what a downscale by N, or images stored at 1/N, gives)."""
+    (w0, h0), (w1, h1) = (float(x) for x in from_size), (float(x) for x in to_size)
+    if min(w0, h0, w1, h1) <= 0:
+        return False
+    return abs(w1 - w0 * h1 / h0) <= 1.0 + 1e-9 or abs(h1 - h0 * w1 / w0) <= 1.0 + 1e-9
+
+
+def check_size(actual: tuple[int, int], declared: tuple[float, float], path: str | Path,
+               what: str = "its intrinsics") -> None:
+    """VrsError naming ``path`` when an image of ``actual`` (w, h) pixels cannot be the image
+    ``declared`` (w, h) describes at some scale (another aspect ratio)."""
+    if not same_aspect(declared, actual):
+        raise VrsError(f"image is {int(actual[0])}x{int(actual[1])} pixels but {what} are for "
+                       f"{declared[0]:g}x{declared[1]:g} (another aspect ratio): wrong or "
+                       "damaged image file?", path)
 
 
 def read_image(path: str | Path, background: tuple[float, float, float] | None = None,
@@ -18,9 +38,11 @@ def read_image(path: str | Path, background: tuple[float, float, float] | None =
       path: image file (any format OpenCV reads).
       background: RGB in [0, 1]; an image with an alpha channel is composited on it
         (white if None).
-      size: optional (width, height) to resize to (area interpolation when shrinking).
+      size: optional (width, height) to resize to (area interpolation when shrinking): the
+        size the dataset declares for this image, possibly downscaled; a file whose aspect
+        ratio differs is an error, not silently stretched.
     Raises:
-      VrsError naming the file if it is missing or cannot be decoded.
+      VrsError naming the file if it is missing, cannot be decoded or contradicts ``size``.
     """
     p = Path(path)
     if not p.is_file():
@@ -39,6 +61,7 @@ def read_image(path: str | Path, background: tuple[float, float, float] | None =
     else:
         img = img[..., :3][..., ::-1]
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        check_size((img.shape[1], img.shape[0]), size, p, "the dataset's camera and size")
         shrink = size[0] < img.shape[1]
         img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA if shrink
                          else cv2.INTER_LINEAR)
@@ -79,24 +102,15 @@ def read_depth(path: str | Path, scale: float = 0.001, invalid: int = 65535) -> 
 
 
 def write_image(path: str | Path, rgb: np.ndarray) -> None:
-    """Write float RGB [H, W, 3] in [0, 1] (or uint8) as an 8-bit image, atomically."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    """Write float RGB [H, W, 3] in [0, 1] (or uint8) as an 8-bit image, atomically
+    (:func:`vrs_jax.fileio.write_atomic`: mode 0644, VrsError naming the file on failure)."""
     if rgb.dtype != np.uint8:
         rgb = np.clip(np.round(np.asarray(rgb) * 255.0), 0, 255).astype(np.uint8)
-    tmp = p.with_name(p.stem + ".tmp" + p.suffix)
-    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-        raise VrsError("could not write image", p)
-    tmp.replace(p)
+    fileio.write_image(path, np.ascontiguousarray(rgb[..., ::-1]))
 
 
 def write_depth(path: str | Path, depth_m: np.ndarray, scale: float = 0.001) -> None:
     """Write depth in metres [H, W] as a 16-bit PNG in units of ``scale`` (0 = invalid)."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
     d = np.where(np.isfinite(depth_m) & (depth_m > 0), np.round(depth_m / scale), 0)
     d = np.clip(d, 0, 65534).astype(np.uint16)
-    tmp = p.with_name(p.stem + ".tmp" + p.suffix)
-    if not cv2.imwrite(str(tmp), d):
-        raise VrsError("could not write depth image", p)
-    tmp.replace(p)
+    fileio.write_image(path, d)

@@ -35,7 +35,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 from pathlib import Path
 from typing import NamedTuple
@@ -43,7 +42,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from vrs_jax import geometry
+from vrs_jax import fileio, geometry
 from vrs_jax.data.images import write_depth, write_image
 from vrs_jax.errors import VrsError
 
@@ -721,10 +720,8 @@ def _config_record(cfg: SyntheticConfig) -> dict:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Write a text file atomically (tmp then os.replace)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    """Write a text file atomically (:func:`vrs_jax.fileio.write_text`)."""
+    fileio.write_text(path, text)
 
 
 def _frame_paths(out: Path, seq: int, i: int) -> tuple[Path, Path, Path]:
@@ -860,7 +857,7 @@ def generate(out_dir: str | Path, cfg: SyntheticConfig | None = None, overwrite:
     if state == "skip":
         return out
     world = build_world(cfg)  # first: a config that cannot be built leaves no folder behind
-    out.mkdir(parents=True, exist_ok=True)
+    fileio.check_writable(out)
     record = _config_record(cfg)
     _write_text(out / MARKER, json.dumps({**record, "complete": False}, indent=1) + "\n")
     layout = world.layout

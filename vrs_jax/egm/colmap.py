@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from vrs_jax import fileio
 from vrs_jax.data.readers.colmap import colmap_camera
 from vrs_jax.egm.map import EGM
 
@@ -60,11 +61,10 @@ def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
 
 def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True) -> Path:
     """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin)."""
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
+    d = fileio.check_writable(out_dir)
     rec = to_colmap(egm)
     if text:
-        rec.write_text(d)
+        rec.write_text(d)  # fileio-exempt: pycolmap writes its own files
     else:
         rec.write_binary(d)
     return d

@@ -77,6 +77,8 @@ def read_results(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise VrsError(f"not a text file ({e.reason})", path) from None
+    except OSError as e:
+        raise VrsError(f"cannot read: {fileio.reason(e)}", path) from None
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     first_line: dict[str, int] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):

@@ -83,6 +83,11 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
     out = Path(out_dir)
     source = scene_source(scene, source_options)
     m, stats = _existing(out, cfg, source)
+    if (m is not None and m.ilm is not None and m.config == cfg and train_nerf
+            and "map_bytes" in stats):
+        log("[1/3] EGM: already built, skipping")
+        log("[2/3] ILM: already trained, skipping")
+        return out  # a finished map: nothing to write (works in a read-only folder too)
     fileio.check_writable(out)
     if m is None:
         log(f"[1/3] EGM: features, pairs, triangulation ({len(scene.references())} references)")

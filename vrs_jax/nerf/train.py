@@ -16,11 +16,18 @@ after every step and stops before anything non-finite is saved.
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import functools
 import json
+import logging
 import math
+import os
+import resource
+import shutil
+import threading
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -34,6 +41,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from vrs_jax import fileio
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf import clusters as clusters_lib
@@ -348,21 +356,125 @@ def make_eval_fn(cfg: NerfConfig) -> Callable[[Any, ClusterData, dict[str, Array
 
 
 def checkpoint_manager(ckpt_dir: str | Path, cfg: NerfConfig) -> ocp.CheckpointManager:
-    """Synchronous orbax manager (atomic per step: tmp dir + rename on completion)."""
+    """Synchronous orbax manager (atomic per step: tmp dir + rename on completion).
+
+    Raises VrsError naming the folder when it cannot be created (read-only, not a folder).
+    """
+    d = Path(ckpt_dir).absolute()
+    if d.exists() and not d.is_dir():
+        raise VrsError("checkpoint path exists and is not a folder", d)
+    fileio.check_writable(d)  # permission / read-only: one line before orbax starts
     opts = ocp.CheckpointManagerOptions(max_to_keep=cfg.keep_checkpoints, create=True,
                                         enable_async_checkpointing=False)
-    return ocp.CheckpointManager(Path(ckpt_dir).absolute(), options=opts,
-                                 item_names=("state", "meta"))
+    try:
+        return ocp.CheckpointManager(d, options=opts, item_names=("state", "meta"))
+    except Exception as e:  # noqa: BLE001 - orbax wraps OSErrors in several types
+        raise VrsError(f"cannot open the checkpoint folder: {fileio.reason(e)}", d) from None
+
+
+def _from_orbax(tb) -> bool:
+    while tb is not None:
+        f = tb.tb_frame.f_code.co_filename
+        if "orbax" in f or "tensorstore" in f:
+            return True
+        tb = tb.tb_next
+    return False
+
+
+class _DropOrbaxNoise(logging.Filter):
+    """Drops log records about orbax's work (its worker threads and asyncio tasks log each
+    failed write with a full traceback, while the caller gets the exception anyway)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "orbax" in record.pathname:
+            return False
+        exc = record.exc_info[2] if record.exc_info else None
+        if record.exc_info and str(record.exc_info[1]) == "Event loop is closed":
+            return False  # orbax's cancelled writes completing into their closed loops
+        return not (_from_orbax(exc) or "orbax" in str(record.msg) or
+                    any("orbax" in str(a) for a in (record.args or ()) if isinstance(a, str)))
+
+
+_DROP_ORBAX = _DropOrbaxNoise()
+_FAILED = {"save": False}
+
+
+def _quiet_orbax_logs() -> None:
+    """Drop orbax's own log records of a failed write (its threads log the failure with full
+    tracebacks; the caller gets one VrsError line). Other records still show."""
+    for name in ("absl", "asyncio", "concurrent.futures"):
+        logging.getLogger(name).addFilter(_DROP_ORBAX)
+    for h in [logging.lastResort, *logging.getLogger().handlers]:
+        if h is not None:
+            h.addFilter(_DROP_ORBAX)
+
+
+def _preflight(directory: Path, tree: Any, step: int) -> None:
+    """Refuse a save that cannot fit before orbax starts it (orbax's failure midway is noisy):
+    free space on the device and the process's file size limit against the state's bytes."""
+    need = sum(int(np.asarray(x).nbytes) for x in jax.tree.leaves(tree))
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        free = None
+    if free is not None and free < need + (1 << 20):
+        raise VrsError(f"cannot save the checkpoint of step {step}: no space left on the device "
+                       f"(needs about {need / 1e6:.1f} MB, {free / 1e6:.1f} MB free)", directory)
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if soft != resource.RLIM_INFINITY and soft < need:
+        raise VrsError(f"cannot save the checkpoint of step {step}: file too large for this "
+                       f"file system or limit (disk full?) (needs about {need / 1e6:.1f} MB, "
+                       f"file size limit {soft} bytes)", directory)
+
+
+def _remove_partial(directory: Path, wait: bool = False) -> None:
+    """Delete orbax's temporary step folders left by a failed save (``wait``: first let
+    orbax's worker threads end, they may still be writing; once more at exit)."""
+    if wait:
+        for t in threading.enumerate():
+            if t is not threading.current_thread() and "orbax" in type(t).__module__:
+                try:
+                    t.join(timeout=10)
+                except Exception:  # noqa: BLE001, S110 - orbax's join re-raises the failure
+                    pass
+
+    def remove():
+        for _ in range(5):  # tensorstore may still add files while the folder goes
+            left = list(directory.glob("*.orbax-checkpoint-tmp*"))
+            if not left:
+                return
+            for p in left:
+                shutil.rmtree(p, ignore_errors=True)
+            time.sleep(0.05)
+
+    remove()
+    if wait:
+        atexit.register(remove)
 
 
 def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[str, Any]
                     ) -> None:
+    """Save ``state`` as step ``state.step``, synchronously.
+
+    Raises VrsError (one line naming the checkpoint folder: disk full, permission denied...)
+    when the save fails; orbax's partial temporary folder is removed, earlier checkpoints
+    stay intact.
+    """
     step = int(state.step)
     tree = {"step": state.step, "params": state.params, "opt_state": state.opt_state,
             "key": state.key}
-    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
-                                            meta=ocp.args.JsonSave(meta)), force=True)
-    mngr.wait_until_finished()
+    directory = Path(str(mngr.directory))
+    _preflight(directory, tree, step)
+    _quiet_orbax_logs()
+    try:
+        mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
+                                                meta=ocp.args.JsonSave(meta)), force=True)
+        mngr.wait_until_finished()
+    except Exception as e:  # noqa: BLE001 - orbax/tensorstore wrap the OSError
+        _FAILED["save"] = True
+        _remove_partial(directory)
+        raise VrsError(f"cannot save the checkpoint of step {step}: {fileio.reason(e)}",
+                       directory) from None
 
 
 def restore_checkpoint(mngr: ocp.CheckpointManager, template: TrainState,
@@ -388,7 +500,59 @@ def restore_checkpoint(mngr: ocp.CheckpointManager, template: TrainState,
     if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves
                if jnp.issubdtype(x.dtype, jnp.floating)):
         raise VrsError("checkpoint holds non-finite values", where)
+    if int(tree["step"]) != int(step):
+        raise VrsError(f"checkpoint records step {int(tree['step'])}, not {step}", where)
     return TrainState(tree["step"], tree["params"], tree["opt_state"], tree["key"]), meta
+
+
+def restore_latest(mngr: ocp.CheckpointManager, template: TrainState,
+                   warn: Callable[[str], None] | None = None
+                   ) -> tuple[TrainState, dict[str, Any], list[int]]:
+    """Restore the newest checkpoint that reads back intact.
+
+    Tries the steps newest first; each one that fails (corrupt, truncated, non-finite) is
+    reported through ``warn`` naming its folder, and the next older one is tried.
+
+    Returns:
+      (state, meta, bad steps skipped, newest first).
+    Raises:
+      VrsError naming the checkpoint folder when none restores.
+    """
+    warn = warn or (lambda s: warnings.warn(s, stacklevel=3))
+    steps = sorted(mngr.all_steps(), reverse=True)
+    bad: list[int] = []
+    for s in steps:
+        try:
+            state, meta = restore_checkpoint(mngr, template, s)
+        except VrsError as e:
+            bad.append(s)
+            warn(f"warning: {e}; trying an earlier checkpoint")
+            continue
+        if bad:
+            warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
+                 f"damaged step(s) {', '.join(map(str, bad))})")
+        return state, meta, bad
+    raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or incompatible "
+                   "checkpoint data); move the folder away to train from scratch",
+                   Path(str(mngr.directory)))
+
+
+def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointManager:
+    """Move damaged step folders out of the manager's folder (to ``<folder>-damaged/``, kept
+    for inspection) so that training can save those steps again; returns a reloaded manager.
+    """
+    directory = Path(str(mngr.directory))
+    aside = directory.with_name(directory.name + "-damaged")
+    try:
+        for s in steps:
+            aside.mkdir(exist_ok=True)
+            dest = aside / f"{s}-{time.strftime('%Y%m%d-%H%M%S')}"
+            os.replace(directory / str(s), dest)  # fileio-exempt: moves a folder
+    except OSError as e:
+        raise VrsError(f"cannot move a damaged checkpoint aside: {fileio.reason(e)}",
+                       directory) from None
+    mngr.reload()
+    return mngr
 
 
 # ----------------------------------------------------------------------------- loop
@@ -439,7 +603,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                            "folder", Path(out_dir) / "checkpoints")
         if resume and mngr.latest_step() is not None:
             try:
-                state, old = restore_checkpoint(mngr, state)
+                state, old, bad = restore_latest(mngr, state, warn=log)
                 # a longer run of the same map continues (only the step budget differs)
                 same = {**(old.get("config") or {}), "max_steps": cfg.max_steps}
                 if json.dumps(same, sort_keys=True) != json.dumps(meta["config"],
@@ -449,6 +613,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                 if old.get("scene") != meta["scene"]:
                     raise VrsError("checkpoint belongs to a different scene or clustering",
                                    Path(out_dir) / "checkpoints")
+                if bad:
+                    mngr = set_aside(mngr, bad)
             except VrsError:
                 mngr.close()
                 raise
@@ -519,7 +685,13 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     finally:
         bar.close()
         if mngr is not None:
-            mngr.close()
+            try:
+                mngr.close()
+            except Exception:  # noqa: BLE001
+                if not _FAILED["save"]:  # after a failed save, close re-raises it
+                    raise
+            if _FAILED["save"]:  # orbax's threads may have written on after the failure
+                _remove_partial(Path(str(mngr.directory)), wait=True)
     # Training throughput: steps after the first (compiling) one, with evaluation and
     # checkpointing excluded.
     timed_steps = done - steps_after_compile

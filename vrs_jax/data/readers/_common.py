@@ -170,9 +170,18 @@ def pinhole(fx, fy, cx, cy) -> np.ndarray:
                                                  np.float64(cx), np.float64(cy)))
 
 
-def scale_to_size(K: np.ndarray, from_size: Sequence[float], to_size: Sequence[float]
-                  ) -> np.ndarray:
-    """Intrinsics [..., 3, 3] given for images of ``from_size`` (w, h) -> ``to_size`` (w, h)."""
+def scale_to_size(K: np.ndarray, from_size: Sequence[float], to_size: Sequence[float],
+                  path: str | Path | None = None) -> np.ndarray:
+    """Intrinsics [..., 3, 3] given for images of ``from_size`` (w, h) -> ``to_size`` (w, h).
+
+    With ``path`` (the image of size ``to_size``): VrsError naming it when the two sizes have
+    another aspect ratio (an image that contradicts its intrinsics is not silently stretched;
+    a uniformly downscaled image is fine).
+    """
+    if path is not None:
+        from vrs_jax.data.images import check_size
+
+        check_size(tuple(int(x) for x in to_size), tuple(float(x) for x in from_size), path)
     sx = float(to_size[0]) / float(from_size[0])
     sy = float(to_size[1]) / float(from_size[1])
     if sx == 1.0 and sy == 1.0:

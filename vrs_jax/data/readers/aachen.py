@@ -104,7 +104,8 @@ def load(root: str | Path, *, nvm: str | Path | None = None, images: str | Path 
             q_sizes.append((e.width, e.height))
     C.warn_list(f"Aachen queries whose image is missing under {img_dir}, skipped", missing)
     actual = C.image_sizes(q_paths)
-    q_K = [C.scale_to_size(K, s0, s) for K, s0, s in zip(q_K, q_sizes, actual, strict=True)]
+    q_K = [C.scale_to_size(K, s0, s, p)
+           for K, s0, s, p in zip(q_K, q_sizes, actual, q_paths, strict=True)]
 
     nq, nd = len(q_names), len(db_paths)
     R = np.concatenate([model.R, np.tile(np.eye(3), (nq, 1, 1))])

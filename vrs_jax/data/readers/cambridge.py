@@ -119,7 +119,7 @@ def load(root: str | Path, *, nvm: str | Path | None = None, nvm_size=NVM_SIZE,
                 continue
             cam = rec.cameras[im.camera_id]
             Ki, dist[i] = colmap_reader.camera_to_K_dist(cam.model.name, cam.params, colmap)
-            K[i] = C.scale_to_size(Ki, (cam.width, cam.height), sizes[i])
+            K[i] = C.scale_to_size(Ki, (cam.width, cam.height), sizes[i], paths[i])
         if missing:
             raise VrsError(f"{len(missing)} images have no camera in the COLMAP model, e.g. "
                            f"{missing[0]}", colmap)

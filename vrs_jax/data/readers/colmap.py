@@ -197,8 +197,8 @@ def load(root: str | Path, *, model: str | Path | None = None, images: str | Pat
         raise VrsError(f"none of the model's {len(rec.images)} images found in {img_dir}",
                        model_dir)
     sizes = C.image_sizes(paths)
-    K = np.stack([C.scale_to_size(k, ms, s) for k, ms, s in zip(Ks, model_sizes, sizes,
-                                                                 strict=True)])
+    K = np.stack([C.scale_to_size(k, ms, s, p) for k, ms, s, p in zip(Ks, model_sizes, sizes,
+                                                                       paths, strict=True)])
     # Sorted by point id so that text and binary models give the same order.
     pts = np.asarray([rec.points3D[k].xyz for k in sorted(rec.points3D)],
                      np.float64).reshape(-1, 3)

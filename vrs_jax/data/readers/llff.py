@@ -82,7 +82,7 @@ def load(root: str | Path, *, factor: int | None = None, query_every: int = 0,
             warnings.warn(f"{paths[i]}: image is {w}x{h} but poses_bounds.npy says "
                           f"{W0:.0f}x{H0:.0f} at factor {factor}; scaling to the image",
                           stacklevel=2)
-        K[i] = C.scale_to_size(C.pinhole(f0, f0, W0 / 2, H0 / 2), (W0, H0), (w, h))
+        K[i] = C.scale_to_size(C.pinhole(f0, f0, W0 / 2, H0 / 2), (W0, H0), (w, h), paths[i])
     bounds = pb[:, 15:17].astype(np.float64)
     if np.any(bounds <= 0) or np.any(bounds[:, 0] >= bounds[:, 1]):
         raise VrsError("bounds must satisfy 0 < near < far for every image", pb_path)

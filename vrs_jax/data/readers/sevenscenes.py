@@ -183,7 +183,7 @@ def load(root: str | Path, *, pgt: str | Path | None = None, query_every: int = 
     intr_f = root / "intrinsics.txt"
     if intr_f.is_file():
         K0, size0 = read_intrinsics_txt(intr_f)
-        K = np.stack([C.scale_to_size(K0, size0, s) for s in sizes])
+        K = np.stack([C.scale_to_size(K0, size0, s, p) for s, p in zip(sizes, paths, strict=True)])
         depth_K = np.stack([C.scale_to_size(K0, size0, s) for s in depth_sizes])
     else:
         K0 = C.pinhole(RGB_F, RGB_F, CX, CY)
