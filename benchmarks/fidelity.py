@@ -1,0 +1,340 @@
+"""Patch fidelity of the NeRF map at its own reference views: map bytes vs rendered patches.
+
+    python -m benchmarks.fidelity --format nerf --root ../shared/data/dtu_scan24 \
+        --query-every 5 --steps 3000 --work runs/fid_scan24 --json runs/fid_ipe.json \
+        [--set encoding=hashgrid --set net_depth=2 ...] [--label NAME]
+
+What it does, in the order of the map-building pipeline:
+
+1. the EGM of the scene's reference views with the pipeline config's EGM settings (baseline
+   variant: keypoints + real-patch descriptors), built once and reused from ``--work``;
+2. the NeRF of those views (``nerf_train.prepare`` with the map's points and keypoints, as
+   ``pipeline.build_map`` does), trained for exactly ``--steps`` steps (a step budget, not
+   minutes: reproducible); unless ``--set max_steps=...`` is given, the lr schedule's horizon
+   is the step budget. The trained ILM is cached in ``--work`` under a hash of its config
+   and step count;
+3. at every reference view (or ``--views`` of them, evenly spaced): the keypoint patches
+   rendered as localization renders them (``localize.render_candidate``, the localizer's
+   config from ``pipeline.localize_config``) and the real patches at the same keypoints read
+   as the baseline map reads them (``features.patches.extract_patches`` on the view's grey
+   image, the path of ``egm.build``); both described by ``features.descriptor.describe``.
+
+Reported per field (and again with every float parameter rounded to float16, the map
+stored at half precision):
+  - patch PSNR: rendered vs real grey patches, pooled MSE over the valid keypoints' samples
+    (and the median of per-patch PSNRs);
+  - own-keypoint rate: for each rendered descriptor, is its nearest real descriptor of the
+    same view its own keypoint's;
+  - matches: mutual-NN + ratio matches rendered -> real of the same view, as localization
+    matches (``features.matching.match`` with the localizer's ratio), and how many of them
+    are the own keypoint;
+  - NeRF map bytes (the .npz as saved, float32 and float16), parameters, training steps/s
+    (after compilation) and seconds, evaluation seconds.
+Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vrs_jax.errors import VrsError, cli_main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.fidelity", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--format", required=True, dest="fmt", help="dataset format (nerf, llff, ...)")
+    p.add_argument("--root", required=True, help="dataset root folder")
+    p.add_argument("--query-every", type=int, default=None, metavar="N",
+                   help="every N-th image is a query (formats without a split)")
+    p.add_argument("--downscale", type=int, default=None, help="read images downscaled by N")
+    p.add_argument("--config", default="cpu-small", help="pipeline config (EGM, NeRF, localize)")
+    p.add_argument("--steps", type=int, required=True, help="NeRF training steps")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a NerfConfig field (repeatable)")
+    p.add_argument("--label", default=None, help="name of this field in the table")
+    p.add_argument("--views", type=int, default=None,
+                   help="evaluate this many reference views, evenly spaced (default: all)")
+    p.add_argument("--no-fp16", action="store_true",
+                   help="skip the evaluation of the float16-rounded map")
+    p.add_argument("--work", default=None,
+                   help="folder for the EGM and trained ILMs, reused across runs")
+    p.add_argument("--json", required=True, help="output JSON file")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+# ----------------------------------------------------------------------------- stages
+
+
+def load(args):
+    from vrs_jax.data.readers import load_scene, options
+
+    opts: dict[str, Any] = {}
+    if args.query_every is not None:
+        if "query_every" not in options(args.fmt):
+            raise VrsError(f"format {args.fmt} has its own split (no --query-every)", args.root)
+        opts["query_every"] = args.query_every
+    if args.downscale is not None:
+        opts["downscale"] = args.downscale
+    return load_scene(args.fmt, args.root, **opts)
+
+
+def egm_of(scene, egm_cfg, work: Path | None, progress: bool, log=print):
+    """The baseline EGM of the scene's references (built, or read from ``work/egm_baseline``).
+
+    Calls ``egm.build.build_egm`` (baseline=True) and ``egm.map.save_egm/load_egm``.
+    """
+    from vrs_jax.egm import build as egm_build
+    from vrs_jax.egm.map import load_egm, save_egm
+
+    where = work / "egm_baseline" if work is not None else None
+    stamp = {"root": str(scene.root), "names": list(scene.references().names),
+             "egm": egm_cfg.name}
+    if where is not None and (where / "egm.json").is_file() and (
+            work / "egm_stamp.json").is_file():
+        if json.loads((work / "egm_stamp.json").read_text()) != stamp:
+            raise VrsError("--work holds the EGM of another scene or config", work)
+        log(f"EGM: reusing {where}")
+        return load_egm(where)
+    t0 = time.perf_counter()
+    egm, stats = egm_build.build_egm(scene, dataclasses.replace(egm_cfg, baseline=True),
+                                     progress=progress)
+    log(egm_build.format_stats(stats))
+    log(f"EGM built in {time.perf_counter() - t0:.0f} s")
+    if where is not None:
+        save_egm(egm, where)
+        (work / "egm_stamp.json").write_text(json.dumps(stamp))
+    return egm
+
+
+def nerf_config_of(pcfg, overrides: dict[str, Any], steps: int):
+    from vrs_jax.nerf import config as nerf_config
+
+    over = dict(overrides)
+    over.setdefault("max_steps", steps)  # the lr schedule ends with the budget
+    return nerf_config.get_config(pcfg.nerf, **over)
+
+
+def train_ilm(scene, egm, egm_cfg, ncfg, steps: int, work: Path | None, progress: bool,
+              log=print) -> tuple[Any, dict[str, Any]]:
+    """Train (or read the cached) ILM of the references, exactly as pipeline.build_map.
+
+    Calls ``nerf.train.prepare`` (points3d and patch keypoints of the map) and
+    ``nerf.train.train``; caches ``work/ilm_<hash>.npz`` (``nerf.ilm.save_ilm``).
+    """
+    from vrs_jax.nerf import ilm as ilm_lib
+    from vrs_jax.nerf import train as nerf_train
+
+    key = hashlib.sha1((ncfg.to_json() + f"|{steps}|{scene.root}").encode()).hexdigest()[:12]
+    path = work / f"ilm_{key}.npz" if work is not None else None
+    info_p = path.with_suffix(".json") if path is not None else None
+    if path is not None and path.is_file() and info_p.is_file():
+        log(f"NeRF: reusing {path}")
+        return ilm_lib.load_ilm(path), json.loads(info_p.read_text())
+    refs = scene.references()
+    prep = nerf_train.prepare(refs, ncfg, points3d=np.asarray(egm.points3d),
+                              patch_keypoints=(egm.keypoints, egm.kp_mask,
+                                               egm_cfg.features.patches))
+    res = nerf_train.train(prep, None, steps=steps, progress=progress, log=log)
+    info = {"steps": int(res.state.step), "steps_per_s": res.steps_per_s,
+            "train_s": res.seconds, "compile_s": res.compile_s,
+            "final_train_psnr": res.history[-1]["psnr"] if res.history else None}
+    if path is not None:
+        ilm_lib.save_ilm(path, res.ilm)
+        info_p.write_text(json.dumps(info))
+    return res.ilm, info
+
+
+def to_float16(ilm):
+    """The ILM with every floating parameter rounded to float16 (and back to float32)."""
+    import jax
+    import jax.numpy as jnp
+
+    params = jax.tree.map(lambda x: x.astype(jnp.float16).astype(x.dtype)
+                          if jnp.issubdtype(x.dtype, jnp.floating) else x, ilm.fields.params)
+    return ilm.replace(fields=ilm.fields.replace(params=params))
+
+
+def float16_bytes(ilm, tmp: Path) -> int:
+    """Bytes of the .npz with the MLP/grid parameters stored as float16."""
+    from vrs_jax.nerf import ilm as ilm_lib
+
+    arrays = ilm_lib._flatten(ilm)  # noqa: SLF001 (same layout as save_ilm)
+    arrays = {k: (v.astype(np.float16) if k.startswith("params/") and v.dtype == np.float32
+                  else v) for k, v in arrays.items()}
+    meta = json.dumps({"format": "vrs_jax.ilm", "config": ilm.config.to_dict(),
+                       "image_names": list(ilm.image_names)}).encode()
+    arrays["__meta__"] = np.frombuffer(meta, np.uint8)
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    n = tmp.stat().st_size
+    tmp.unlink()
+    return n
+
+
+def real_gray(scene, i: int) -> np.ndarray:
+    """Grey reference image [H, W] as the EGM build reads it (background composite, luma)."""
+    from vrs_jax.data.images import read_image
+    from vrs_jax.features.descriptor import LUMA
+
+    rgb = read_image(scene.image_paths[i], background=scene.background,
+                     size=tuple(int(s) for s in scene.sizes[i]))
+    return np.ascontiguousarray(rgb @ np.asarray(LUMA, np.float32))
+
+
+def make_evaluator(lcfg):
+    """Jitted per-view comparison: (ilm, egm, i, gray) -> metric arrays of view i."""
+    import jax
+    import jax.numpy as jnp
+
+    from vrs_jax.features.descriptor import describe
+    from vrs_jax.features.matching import match, pairwise_distances
+    from vrs_jax.features.patches import extract_patches
+    from vrs_jax.localize.localize import render_candidate
+
+    def one(ilm, egm, i, gray):
+        mask = egm.kp_mask[i]
+        rend = render_candidate(ilm, egm, i, lcfg)  # [K, P, P]
+        real = extract_patches(gray, egm.keypoints[i], lcfg.patches)  # [K, P, P]
+        d_rend = describe(rend, lcfg.descriptor)
+        d_real = describe(real, lcfg.descriptor)
+        se = jnp.mean((rend - real) ** 2, axis=(1, 2))  # [K] per-patch MSE
+        dist = pairwise_distances(d_rend, d_real)
+        dist = jnp.where(mask[None, :], dist, jnp.inf)
+        own = jnp.argmin(dist, axis=1) == jnp.arange(mask.shape[0])
+        j, valid, _ = match(d_rend, mask, d_real, mask, lcfg.ratio, lcfg.mutual)
+        correct = valid & (j == jnp.arange(mask.shape[0]))
+        return {"se": se, "own": own & mask, "matches": jnp.sum(valid),
+                "correct": jnp.sum(correct), "mask": mask, "d_real": d_real}
+
+    return jax.jit(one)
+
+
+def evaluate(ilm, egm, scene_refs, views: np.ndarray, lcfg, grays: dict, progress: bool
+             ) -> dict[str, Any]:
+    """Fidelity metrics over the given reference views (see the module docstring)."""
+    import jax
+    from tqdm.auto import tqdm
+
+    fn = make_evaluator(lcfg)
+    se, own, n_kp, n_match, n_corr, desc_err = [], [], 0, 0, 0, 0.0
+    t0 = time.perf_counter()
+    for i in tqdm(views, desc="fidelity", unit="view", disable=not progress):
+        out = jax.device_get(fn(ilm, egm, int(i), grays[int(i)]))
+        m = np.asarray(out["mask"], bool)
+        se.append(out["se"][m])
+        own.append(out["own"][m])
+        n_kp += int(m.sum())
+        n_match += int(out["matches"])
+        n_corr += int(out["correct"])
+        if egm.local_desc is not None:  # our real descriptors == the baseline map's
+            ref = np.asarray(egm.local_desc[int(i)])[m]
+            desc_err = max(desc_err, float(np.max(np.abs(out["d_real"][m] - ref)))
+                           if m.any() else 0.0)
+    se_all = np.concatenate(se)
+    own_all = np.concatenate(own)
+    n_views = len(views)
+    patch_psnr = -10 * np.log10(np.maximum(se_all, 1e-10))
+    return {"patch_psnr_db": float(-10 * np.log10(max(se_all.mean(), 1e-10))),
+            "patch_psnr_median_db": float(np.median(patch_psnr)),
+            "own_keypoint_rate": float(own_all.mean()),
+            "matches_per_view": n_match / n_views,
+            "correct_matches_per_view": n_corr / n_views,
+            "keypoints_per_view": n_kp / n_views,
+            "views": int(n_views),
+            "real_desc_vs_baseline_max_abs": desc_err,
+            "eval_s": time.perf_counter() - t0}
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def run(args) -> dict[str, Any]:
+    from benchmarks.common import environment, table, write_json
+    from vrs_jax import pipeline
+    from vrs_jax.egm import build as egm_build
+    from vrs_jax.nerf import ilm as ilm_lib
+    from vrs_jax.nerf.config import parse_overrides
+    from vrs_jax.nerf.model import count_params
+
+    log = print
+    progress = not args.quiet
+    work = Path(args.work) if args.work else None
+    if work is not None:
+        work.mkdir(parents=True, exist_ok=True)
+    scene = load(args)
+    refs = scene.references()
+    pcfg = pipeline.get_config(args.config)
+    egm_cfg = egm_build.get_config(pcfg.egm)
+    overrides = parse_overrides(args.set)
+    ncfg = nerf_config_of(pcfg, overrides, args.steps)
+
+    egm = egm_of(scene, egm_cfg, work, progress, log)
+    ilm, train_info = train_ilm(scene, egm, egm_cfg, ncfg, args.steps, work, progress, log)
+    if tuple(ilm.image_names) != tuple(egm.names):
+        raise VrsError("the NeRF and the EGM list different reference images", args.root)
+    egm = egm.replace(cluster=ilm.image_cluster)  # as pipeline._attach_clusters
+    lcfg = pipeline.localize_config(pcfg, egm_cfg, "render")
+
+    tmp_dir = work if work is not None else Path(args.json).parent
+    tmp_dir.mkdir(parents=True, exist_ok=True)
+    tmp = tmp_dir / ".fidelity_ilm.npz"
+    ilm_lib.save_ilm(tmp, ilm)
+    bytes32 = ilm_lib.map_bytes(tmp)
+    tmp.unlink()
+    bytes16 = float16_bytes(ilm, tmp)
+
+    n = len(refs)
+    views = (np.arange(n) if args.views is None or args.views >= n
+             else np.unique(np.round(np.linspace(0, n - 1, args.views)).astype(int)))
+    grays = {int(i): real_gray(refs, int(i)) for i in views}
+    res32 = evaluate(ilm, egm, refs, views, lcfg, grays, progress)
+    res16 = None if args.no_fp16 else evaluate(to_float16(ilm), egm, refs, views, lcfg,
+                                               grays, progress)
+    label = args.label or (", ".join(args.set) if args.set else ncfg.name)
+    row = {"label": label, "overrides": overrides, "params": count_params(ilm.fields.params),
+           "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
+           "float32": res32, "float16": res16}
+    headers = ["field", "params", "MB", "PSNR dB", "med dB", "own %", "match", "correct",
+               "steps/s", "train s"]
+    rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{res32['patch_psnr_db']:.2f}",
+             f"{res32['patch_psnr_median_db']:.2f}", f"{100 * res32['own_keypoint_rate']:.1f}",
+             f"{res32['matches_per_view']:.1f}", f"{res32['correct_matches_per_view']:.1f}",
+             f"{train_info['steps_per_s']:.1f}", f"{train_info['train_s']:.0f}"]]
+    if res16 is not None:
+        rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}",
+                     f"{res16['patch_psnr_db']:.2f}", f"{res16['patch_psnr_median_db']:.2f}",
+                     f"{100 * res16['own_keypoint_rate']:.1f}",
+                     f"{res16['matches_per_view']:.1f}",
+                     f"{res16['correct_matches_per_view']:.1f}", "", ""])
+    print(table(headers, rows, title=f"patch fidelity at {len(views)} reference views of "
+                                     f"{scene.root.name}, {args.steps} steps"))
+    doc = {"benchmark": "fidelity", "argv": vars(args), "environment": environment(),
+           "scene": {"root": str(scene.root), "format": args.fmt, "references": n,
+                     "queries": int(scene.is_query.sum())},
+           "pipeline_config": pcfg.name, "nerf_config": ncfg.to_dict(),
+           "localize": {"patch_size": lcfg.patches.size, "ratio": lcfg.ratio,
+                        "mutual": lcfg.mutual, "depth_guided": lcfg.depth_guided,
+                        "narrow_samples": lcfg.narrow_samples},
+           "result": row}
+    write_json(args.json, doc)
+    log(f"wrote {args.json}")
+    return doc
+
+
+@cli_main
+def main(argv: list[str] | None = None) -> None:
+    run(build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
