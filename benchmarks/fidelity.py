@@ -165,18 +165,11 @@ def to_float16(ilm):
 
 
 def float16_bytes(ilm, tmp: Path) -> int:
-    """Bytes of the .npz with the MLP/grid parameters stored as float16."""
+    """Bytes of the .npz with the network parameters stored as float16 (save_ilm)."""
     from vrs_jax.nerf import ilm as ilm_lib
 
-    arrays = ilm_lib._flatten(ilm)  # noqa: SLF001 (same layout as save_ilm)
-    arrays = {k: (v.astype(np.float16) if k.startswith("params/") and v.dtype == np.float32
-                  else v) for k, v in arrays.items()}
-    meta = json.dumps({"format": "vrs_jax.ilm", "config": ilm.config.to_dict(),
-                       "image_names": list(ilm.image_names)}).encode()
-    arrays["__meta__"] = np.frombuffer(meta, np.uint8)
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    n = tmp.stat().st_size
+    ilm_lib.save_ilm(tmp, ilm, float16=True)
+    n = ilm_lib.map_bytes(tmp)
     tmp.unlink()
     return n
 

@@ -80,11 +80,20 @@ def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
     return out
 
 
-def save_ilm(path: str | Path, ilm: ILM) -> Path:
-    """Write the map to ``path`` (.npz), atomically. Returns the path."""
+def save_ilm(path: str | Path, ilm: ILM, float16: bool = False) -> Path:
+    """Write the map to ``path`` (.npz), atomically. Returns the path.
+
+    ``float16``: store the network parameters (MLP weights, hash tables) at half precision,
+    halving the map; :func:`load_ilm` reads them back as float32. Rendering from the rounded
+    parameters is measured by ``benchmarks.fidelity`` (its float16 rows).
+    """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     arrays = _flatten(ilm)
+    if float16:
+        arrays = {k: (v.astype(np.float16) if k.startswith("params/")
+                      and np.issubdtype(v.dtype, np.floating) else v)
+                  for k, v in arrays.items()}
     meta = {"format": "vrs_jax.ilm", "format_version": FORMAT_VERSION,
             "config": ilm.config.to_dict(), "image_names": list(ilm.image_names)}
     arrays[_META] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -120,7 +129,8 @@ def load_ilm(path: str | Path) -> ILM:
     cfg = NerfConfig.from_dict(meta["config"])
     try:
         params = traverse_util.unflatten_dict(
-            {k[len("params/"):]: jnp.asarray(v) for k, v in arrays.items()
+            {k[len("params/"):]: jnp.asarray(v, jnp.float32 if np.issubdtype(
+                v.dtype, np.floating) else v.dtype) for k, v in arrays.items()
              if k.startswith("params/")}, sep="/")
         fields = Field(params=params, center=jnp.asarray(arrays["center"]),
                        scale=jnp.asarray(arrays["scale"]),
