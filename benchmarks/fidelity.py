@@ -3,6 +3,10 @@
     python -m benchmarks.fidelity --format nerf --root ../shared/data/dtu_scan24 \
         --query-every 5 --steps 3000 --work runs/fid_scan24 --json runs/fid_ipe.json \
         [--set encoding=hashgrid --set net_depth=2 ...] [--label NAME]
+    python -m benchmarks.fidelity --map runs/map_scan24 --json runs/fid_map.json
+
+With ``--map`` it measures a map folder built by ``pipeline.build_map`` (no training; the
+scene is the one recorded in its map.json unless --format/--root are given).
 
 What it does, in the order of the map-building pipeline:
 
@@ -51,13 +55,16 @@ from vrs_jax.errors import VrsError, cli_main
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmarks.fidelity", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--format", required=True, dest="fmt", help="dataset format (nerf, llff, ...)")
-    p.add_argument("--root", required=True, help="dataset root folder")
+    p.add_argument("--format", default=None, dest="fmt", help="dataset format (nerf, llff, ...)")
+    p.add_argument("--root", default=None, help="dataset root folder")
+    p.add_argument("--map", default=None,
+                   help="measure this pipeline map folder instead of training a NeRF")
     p.add_argument("--query-every", type=int, default=None, metavar="N",
                    help="every N-th image is a query (formats without a split)")
     p.add_argument("--downscale", type=int, default=None, help="read images downscaled by N")
     p.add_argument("--config", default="cpu-small", help="pipeline config (EGM, NeRF, localize)")
-    p.add_argument("--steps", type=int, required=True, help="NeRF training steps")
+    p.add_argument("--steps", type=int, default=None,
+                   help="NeRF training steps (required without --map)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NerfConfig field (repeatable)")
     p.add_argument("--label", default=None, help="name of this field in the table")
@@ -252,7 +259,7 @@ def evaluate(ilm, egm, scene_refs, views: np.ndarray, lcfg, grays: dict, progres
 
 
 def run(args) -> dict[str, Any]:
-    from benchmarks.common import environment, table, write_json
+    from benchmarks.common import environment, fmt, table, write_json
     from vrs_jax import pipeline
     from vrs_jax.egm import build as egm_build
     from vrs_jax.nerf import ilm as ilm_lib
@@ -264,18 +271,37 @@ def run(args) -> dict[str, Any]:
     work = Path(args.work) if args.work else None
     if work is not None:
         work.mkdir(parents=True, exist_ok=True)
-    scene = load(args)
-    refs = scene.references()
-    pcfg = pipeline.get_config(args.config)
-    egm_cfg = egm_build.get_config(pcfg.egm)
     overrides = parse_overrides(args.set)
-    ncfg = nerf_config_of(pcfg, overrides, args.steps)
-
-    egm = egm_of(scene, egm_cfg, work, progress, log)
-    ilm, train_info = train_ilm(scene, egm, egm_cfg, ncfg, args.steps, work, progress, log)
-    if tuple(ilm.image_names) != tuple(egm.names):
-        raise VrsError("the NeRF and the EGM list different reference images", args.root)
-    egm = egm.replace(cluster=ilm.image_cluster)  # as pipeline._attach_clusters
+    if args.map is not None:
+        if args.set:
+            raise VrsError("--set applies to a trained field, not to a --map")
+        m = pipeline.load_map(args.map)  # EGM (baseline) with clusters attached, ILM
+        key = m.meta["key"]
+        args.fmt = args.fmt or key["format"]
+        args.root = args.root or key["root"]
+        scene = load(args)
+        pcfg, egm_cfg, egm, ilm = m.pcfg, m.egm_cfg, m.egm, m.ilm
+        ncfg = ilm.config
+        st = m.meta.get("stats", {}).get("ilm", {})
+        train_info = {"steps": st.get("steps"), "steps_per_s": st.get("steps_per_s"),
+                      "train_s": st.get("train_s"), "compile_s": None,
+                      "final_train_psnr": None}
+        args.steps = st.get("steps")
+    else:
+        if args.fmt is None or args.root is None or args.steps is None:
+            raise VrsError("--format, --root and --steps are required without --map")
+        scene = load(args)
+        pcfg = pipeline.get_config(args.config)
+        egm_cfg = egm_build.get_config(pcfg.egm)
+        ncfg = nerf_config_of(pcfg, overrides, args.steps)
+        egm = egm_of(scene, egm_cfg, work, progress, log)
+        ilm, train_info = train_ilm(scene, egm, egm_cfg, ncfg, args.steps, work, progress,
+                                    log)
+        egm = egm.replace(cluster=ilm.image_cluster)  # as pipeline._attach_clusters
+    refs = scene.references()
+    if tuple(ilm.image_names) != tuple(egm.names) or tuple(refs.names) != tuple(egm.names):
+        raise VrsError("the NeRF, the EGM and the scene list different reference images",
+                       args.root)
     lcfg = pipeline.localize_config(pcfg, egm_cfg, "render")
 
     tmp_dir = work if work is not None else Path(args.json).parent
@@ -302,7 +328,7 @@ def run(args) -> dict[str, Any]:
     rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{res32['patch_psnr_db']:.2f}",
              f"{res32['patch_psnr_median_db']:.2f}", f"{100 * res32['own_keypoint_rate']:.1f}",
              f"{res32['matches_per_view']:.1f}", f"{res32['correct_matches_per_view']:.1f}",
-             f"{train_info['steps_per_s']:.1f}", f"{train_info['train_s']:.0f}"]]
+             fmt(train_info["steps_per_s"], 1), fmt(train_info["train_s"], 0)]]
     if res16 is not None:
         rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}",
                      f"{res16['patch_psnr_db']:.2f}", f"{res16['patch_psnr_median_db']:.2f}",
@@ -310,7 +336,7 @@ def run(args) -> dict[str, Any]:
                      f"{res16['matches_per_view']:.1f}",
                      f"{res16['correct_matches_per_view']:.1f}", "", ""])
     print(table(headers, rows, title=f"patch fidelity at {len(views)} reference views of "
-                                     f"{scene.root.name}, {args.steps} steps"))
+                                     f"{Path(scene.root).name}, {args.steps} steps"))
     doc = {"benchmark": "fidelity", "argv": vars(args), "environment": environment(),
            "scene": {"root": str(scene.root), "format": args.fmt, "references": n,
                      "queries": int(scene.is_query.sum())},

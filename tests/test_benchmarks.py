@@ -229,3 +229,26 @@ def test_table_and_number_formatting():
     assert common.pct(0.5) == "50.0%"
     assert common.evenly_spaced(20, 3).tolist() == [0, 10, 19]
     assert common.evenly_spaced(5, None).tolist() == list(range(5))
+
+
+def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
+    from benchmarks import fidelity
+
+    out = tmp_path / "fidelity.json"
+    assert fidelity.main(["--map", str(tiny_map), "--views", "3", "--json", str(out),
+                          "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    r = doc["result"]
+    assert r["ilm_bytes"] > r["ilm_bytes_float16"] > 0
+    for prec in ("float32", "float16"):
+        f = r[prec]
+        assert f["views"] == 3 and _finite(f["patch_psnr_db"], f["patch_psnr_median_db"])
+        assert 0.0 <= f["own_keypoint_rate"] <= 1.0
+        assert 0 <= f["correct_matches_per_view"] <= f["matches_per_view"] \
+            <= f["keypoints_per_view"]
+    # the real patches are read and described exactly as the baseline map's descriptors
+    assert r["float32"]["real_desc_vs_baseline_max_abs"] < 1e-4
+    mean_valid = np.asarray(loaded.egm.kp_mask).sum(1)
+    assert r["float32"]["keypoints_per_view"] == pytest.approx(
+        mean_valid[np.unique(np.round(np.linspace(0, len(mean_valid) - 1, 3))
+                                      .astype(int))].mean())
