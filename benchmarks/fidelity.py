@@ -67,6 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NeRF training steps (required without --map)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NerfConfig field (repeatable)")
+    p.add_argument("--localize", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a LocalizeConfig field of the renderer (depth_guided, "
+                        "narrow_samples, depth_margin), e.g. to separate the field's error "
+                        "from the depth-guided sampling's")
     p.add_argument("--label", default=None, help="name of this field in the table")
     p.add_argument("--views", type=int, default=None,
                    help="evaluate this many reference views, evenly spaced (default: all)")
@@ -159,6 +163,28 @@ def train_ilm(scene, egm, egm_cfg, ncfg, steps: int, work: Path | None, progress
         ilm_lib.save_ilm(path, res.ilm)
         info_p.write_text(json.dumps(info))
     return res.ilm, info
+
+
+def localize_overrides(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields only)."""
+    from vrs_jax.localize.config import LocalizeConfig
+
+    defaults = LocalizeConfig()
+    out: dict[str, Any] = {}
+    for item in items:
+        key, _, val = item.partition("=")
+        key = key.strip().replace("-", "_")
+        cur = getattr(defaults, key, None)
+        if not _ or not isinstance(cur, (bool, int, float)):
+            raise VrsError(f"--localize expects KEY=VALUE of a number/bool field, got {item!r}")
+        try:
+            if isinstance(cur, bool):
+                out[key] = val.lower() in ("1", "true", "yes")
+            else:
+                out[key] = type(cur)(val)
+        except ValueError:
+            raise VrsError(f"bad value for {key}: {val!r}") from None
+    return out
 
 
 def to_float16(ilm):
@@ -302,7 +328,8 @@ def run(args) -> dict[str, Any]:
     if tuple(ilm.image_names) != tuple(egm.names) or tuple(refs.names) != tuple(egm.names):
         raise VrsError("the NeRF, the EGM and the scene list different reference images",
                        args.root)
-    lcfg = pipeline.localize_config(pcfg, egm_cfg, "render")
+    lcfg = pipeline.localize_config(pcfg, egm_cfg, "render", **localize_overrides(
+        args.localize))
 
     tmp_dir = work if work is not None else Path(args.json).parent
     tmp_dir.mkdir(parents=True, exist_ok=True)
@@ -319,7 +346,8 @@ def run(args) -> dict[str, Any]:
     res32 = evaluate(ilm, egm, refs, views, lcfg, grays, progress)
     res16 = None if args.no_fp16 else evaluate(to_float16(ilm), egm, refs, views, lcfg,
                                                grays, progress)
-    label = args.label or (", ".join(args.set) if args.set else ncfg.name)
+    label = args.label or (", ".join(args.set + args.localize) if args.set or args.localize
+                           else ncfg.name)
     row = {"label": label, "overrides": overrides, "params": count_params(ilm.fields.params),
            "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
            "float32": res32, "float16": res16}
