@@ -71,6 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a LocalizeConfig field of the renderer (depth_guided, "
                         "narrow_samples, depth_margin), e.g. to separate the field's error "
                         "from the depth-guided sampling's")
+    p.add_argument("--render", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a NerfConfig sampling field at rendering only (e.g. "
+                        "num_samples_coarse=16, num_samples_fine=16 with depth_guided=false)")
     p.add_argument("--label", default=None, help="name of this field in the table")
     p.add_argument("--views", type=int, default=None,
                    help="evaluate this many reference views, evenly spaced (default: all)")
@@ -163,6 +166,10 @@ def train_ilm(scene, egm, egm_cfg, ncfg, steps: int, work: Path | None, progress
         ilm_lib.save_ilm(path, res.ilm)
         info_p.write_text(json.dumps(info))
     return res.ilm, info
+
+
+# NerfConfig fields that change how a trained field is rendered, not the field itself.
+RENDER_FIELDS = {"num_samples_coarse", "num_samples_fine", "resample_padding", "lindisp"}
 
 
 def localize_overrides(items: list[str]) -> dict[str, Any]:
@@ -330,6 +337,11 @@ def run(args) -> dict[str, Any]:
                        args.root)
     lcfg = pipeline.localize_config(pcfg, egm_cfg, "render", **localize_overrides(
         args.localize))
+    render_over = parse_overrides(args.render)
+    if set(render_over) - RENDER_FIELDS:
+        raise VrsError(f"--render accepts only {', '.join(sorted(RENDER_FIELDS))}")
+    if render_over:
+        ilm = ilm.replace(config=dataclasses.replace(ilm.config, **render_over))
 
     tmp_dir = work if work is not None else Path(args.json).parent
     tmp_dir.mkdir(parents=True, exist_ok=True)
@@ -346,8 +358,8 @@ def run(args) -> dict[str, Any]:
     res32 = evaluate(ilm, egm, refs, views, lcfg, grays, progress)
     res16 = None if args.no_fp16 else evaluate(to_float16(ilm), egm, refs, views, lcfg,
                                                grays, progress)
-    label = args.label or (", ".join(args.set + args.localize) if args.set or args.localize
-                           else ncfg.name)
+    extra = args.set + args.localize + args.render
+    label = args.label or (", ".join(extra) if extra else ncfg.name)
     row = {"label": label, "overrides": overrides, "params": count_params(ilm.fields.params),
            "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
            "float32": res32, "float16": res16}
@@ -366,6 +378,7 @@ def run(args) -> dict[str, Any]:
     print(table(headers, rows, title=f"patch fidelity at {len(views)} reference views of "
                                      f"{Path(scene.root).name}, {args.steps} steps"))
     doc = {"benchmark": "fidelity", "argv": vars(args), "environment": environment(),
+           "render_overrides": render_over,
            "scene": {"root": str(scene.root), "format": args.fmt, "references": n,
                      "queries": int(scene.is_query.sum())},
            "pipeline_config": pcfg.name, "nerf_config": ncfg.to_dict(),
