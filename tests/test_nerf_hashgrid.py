@@ -123,14 +123,19 @@ def test_gradients_are_finite_and_the_table_gradient_is_the_interpolation_weight
     def f(tab, x, s):
         return jnp.sum(H.encode(tab, x, s, res, dense) ** 2)
 
-    gt, gx, gs = jax.grad(f, argnums=(0, 1, 2))(table, x, sigma)
+    gt, gx, gs = jax.jit(jax.grad(f, argnums=(0, 1, 2)))(table, x, sigma)
     assert all(np.all(np.isfinite(np.asarray(g))) for g in (gt, gx, gs))
     # d/dtable of sum(encode) without anti-aliasing: each point spreads weight 1 per level
-    g1 = jax.grad(lambda tab: jnp.sum(H.encode(tab, x, None, res, dense)[:, ::2]))(table)
+    g1 = jax.jit(jax.grad(lambda tab: jnp.sum(H.encode(tab, x, None, res, dense)[:, ::2])))(
+        table)
     np.testing.assert_allclose(np.asarray(g1[..., 0]).sum(axis=1), [7.0] * 3, rtol=1e-5)
     # zero footprint: still finite
-    g0 = jax.grad(f, argnums=2)(table, x, jnp.zeros(7))
+    g0 = jax.jit(jax.grad(f, argnums=2))(table, x, jnp.zeros(7))
     assert np.all(np.isfinite(np.asarray(g0)))
+
+
+def _init(cfg, n):
+    return jax.jit(init_stacked_params, static_argnums=(1, 2))(jax.random.key(0), cfg, n)
 
 
 HG = get_config("test", encoding="hashgrid", hash_levels=8, hash_log2_table=12,
@@ -138,7 +143,7 @@ HG = get_config("test", encoding="hashgrid", hash_levels=8, hash_log2_table=12,
 
 
 def test_hashgrid_field_renders_and_anti_aliases():
-    params = init_stacked_params(jax.random.key(0), HG, 1)
+    params = _init(HG, 1)
     assert params[HASH_TABLE].shape == (1, 8, 4096, 2)
     p = jax.tree.map(lambda a: a[0], params)
     # a non-trivial table so that the levels matter
@@ -148,13 +153,14 @@ def test_hashgrid_field_renders_and_anti_aliases():
     d = jnp.tile(jnp.asarray([[0.01, 0.02, 1.0]]), (4, 1))
     near, far = jnp.full(4, 2.0), jnp.full(4, 4.0)
     radii = jnp.asarray([1e-4, 1e-3, 1e-1, 1.0])
-    rgb = np.asarray(render_rays(field, o, d, radii, near, far, None, HG)["rgb"])
+    render = jax.jit(render_rays, static_argnames=("cfg",))
+    rgb = np.asarray(render(field, o, d, radii, near, far, None, cfg=HG)["rgb"])
     assert np.all(np.isfinite(rgb))
     # the same ray with a wider cone renders differently (the radius has meaning) ...
     assert np.abs(rgb[0] - rgb[3]).max() > 1e-3
     # ... and without anti-aliasing it does not
     cfg = NerfConfig.from_dict({**HG.to_dict(), "hash_antialias": False})
-    rgb2 = np.asarray(render_rays(field, o, d, radii, near, far, None, cfg)["rgb"])
+    rgb2 = np.asarray(render(field, o, d, radii, near, far, None, cfg=cfg)["rgb"])
     np.testing.assert_allclose(rgb2[0], rgb2[3], atol=1e-6)
 
 
@@ -165,16 +171,16 @@ def test_hashgrid_field_trains_on_the_toy_scene(tmp_path):
     scene = make_toy_scene(tmp_path, n_images=12, size=24, query_every=4)
     prep = T.prepare(scene, HG, near=2.0, far=6.0)
     batch = jax.tree.map(jnp.asarray, prep.eval_batch)
-    res = T.train(prep, None, steps=200, progress=False)
+    res = T.train(prep, None, steps=150, progress=False)
     after = float(T.make_eval_fn(HG)(res.state.params, prep.cluster_data, batch))
-    # Stated margin: >= 21 dB held-out after 200 steps (measured 24.4 dB; the IPE test
-    # config reaches 20.4 dB at 200 steps).
-    print(f"hash-grid held-out PSNR after 200 steps: {after:.2f} dB")
+    # Stated margin: >= 21 dB held-out after 150 steps (measured 22.5 dB; the IPE test
+    # config reaches 20.4 dB only after 200 steps).
+    print(f"hash-grid held-out PSNR after 150 steps: {after:.2f} dB")
     assert after >= 21.0
 
 
 def test_ilm_round_trip_with_a_hash_table(tmp_path):
-    params = init_stacked_params(jax.random.key(0), HG, 2)
+    params = _init(HG, 2)
     fields = Field(params, jnp.zeros((2, 3)), jnp.ones(2), jnp.ones((2, 3)))
     m = ilm_lib.ILM(fields=fields, cluster_centers=jnp.zeros((2, 3)),
                     image_cluster=jnp.asarray([0, 1], jnp.int32),
