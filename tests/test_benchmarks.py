@@ -262,3 +262,26 @@ def test_stream_benchmark_cold_and_warm(base, tmp_path):
     warm = rows[-1]
     assert warm["warm_hits"] > 0 and warm["cache"]["bytes"] <= warm["cache"]["budget_bytes"]
     assert all(_finite(r["median_s_per_query"]) for r in rows)
+
+
+def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
+    from benchmarks import fidelity
+
+    out = tmp_path / "fidelity.json"
+    assert fidelity.main(["--map", str(tiny_map), "--views", "3", "--json", str(out),
+                          "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    r = doc["result"]
+    assert r["ilm_bytes"] > r["ilm_bytes_float16"] > 0
+    for prec in ("float32", "float16"):
+        f = r[prec]
+        assert f["views"] == 3 and _finite(f["patch_psnr_db"], f["patch_psnr_median_db"])
+        assert 0.0 <= f["own_keypoint_rate"] <= 1.0
+        assert 0 <= f["correct_matches_per_view"] <= f["matches_per_view"] \
+            <= f["keypoints_per_view"]
+    # the real patches are read and described exactly as the baseline map's descriptors
+    assert r["float32"]["real_desc_vs_baseline_max_abs"] < 2e-3  # the map stores float16
+    mean_valid = np.asarray(loaded.egm.kp_mask).sum(1)
+    assert r["float32"]["keypoints_per_view"] == pytest.approx(
+        mean_valid[np.unique(np.round(np.linspace(0, len(mean_valid) - 1, 3))
+                                      .astype(int))].mean())

@@ -75,3 +75,19 @@ def test_missing_corrupt_and_other_version(tmp_path):
     np.savez(wrong, **arrays)
     with pytest.raises(VrsError, match="do not match its config"):
         ilm_lib.load_ilm(wrong)
+
+
+def test_float16_storage_halves_the_parameters_and_loads_as_float32(tmp_path):
+    m = _ilm()
+    p32 = ilm_lib.save_ilm(tmp_path / "a.npz", m)
+    p16 = ilm_lib.save_ilm(tmp_path / "b.npz", m, float16=True)
+    n_params = sum(x.size for x in jax.tree.leaves(m.fields.params))
+    saved = ilm_lib.map_bytes(p32) - ilm_lib.map_bytes(p16)
+    assert abs(saved - 2 * n_params) < 0.05 * 2 * n_params + 2048
+    back = ilm_lib.load_ilm(p16)
+    for a, b in zip(jax.tree.leaves(m.fields.params), jax.tree.leaves(back.fields.params),
+                    strict=True):
+        assert b.dtype == jnp.float32
+        np.testing.assert_array_equal(np.asarray(b),
+                                      np.asarray(a).astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(np.asarray(back.near), np.asarray(m.near))

@@ -24,6 +24,8 @@ from typing import Any
 from vrs_jax import configio
 from vrs_jax.errors import VrsError
 
+ENCODINGS = ("ipe", "hashgrid")
+
 
 @dataclasses.dataclass(frozen=True)
 class NerfConfig:
@@ -43,6 +45,20 @@ class NerfConfig:
     min_deg_point: int = 0  # lowest IPE frequency 2^0: coordinates in [-pi, pi] don't wrap
     max_deg_point: int = 16  # mip-NeRF; IPE itself switches off what the footprint can't see
     deg_view: int = 4  # view-direction encoding degrees (mip-NeRF)
+    # Position encoding: "ipe" (mip-NeRF's integrated positional encoding, the paper's) or
+    # "hashgrid" (Instant-NGP multiresolution hash grid, nerf/hashgrid.py, with Zip-NeRF's
+    # footprint-weighted levels so the cone radius still anti-aliases). The hash grid moves
+    # the capacity from the MLP into a table: a small MLP (e.g. 2 x 64) suffices after it.
+    encoding: str = "ipe"
+    hash_levels: int = 16  # L: Instant-NGP's default; resolutions base_res .. max_res
+    hash_log2_table: int = 14  # T = 2^14 entries per level: the map-size knob (L*T*F floats)
+    hash_features: int = 2  # F per level (Instant-NGP: 2 is the best quality per byte)
+    hash_base_res: int = 16  # coarsest grid over the normalised cube [-norm_radius, +]^3
+    # finest grid: 1024 cells over the cube ~ a pixel footprint of a 384-800 px view whose
+    # frustum spans the cube; finer levels would be switched off by the footprint anyway
+    hash_max_res: int = 1024
+    hash_init_scale: float = 1e-4  # Instant-NGP: table initialised uniform(-1e-4, 1e-4)
+    hash_antialias: bool = True  # Zip-NeRF level weights from the cone footprint
 
     # --- sampling
     num_samples_coarse: int = 128  # the paper: 128 coarse + 128 fine
@@ -96,6 +112,11 @@ class NerfConfig:
     def num_levels(self) -> int:
         """Coarse + fine (a config with no fine samples renders one level)."""
         return 2 if self.num_samples_fine > 0 else 1
+
+    def __post_init__(self):
+        if self.encoding not in ENCODINGS:
+            raise VrsError(f"unknown NeRF encoding {self.encoding!r}; choose from "
+                           f"{', '.join(ENCODINGS)}")
 
     def to_dict(self) -> dict[str, Any]:
         return configio.to_dict(self)

@@ -81,10 +81,16 @@ def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
     return out
 
 
-def to_bytes(ilm: ILM) -> bytes:
+def to_bytes(ilm: ILM, float16: bool = False) -> bytes:
     """The ILM as one npz file's bytes: every array plus a JSON header (format version, the
-    full NerfConfig, the image names)."""
+    full NerfConfig, the image names). ``float16``: the network parameters (MLP weights, hash
+    tables) at half precision, halving the file; :func:`from_bytes` reads them back as float32
+    (rendering from the rounded parameters is measured by ``benchmarks.fidelity``)."""
     arrays = _flatten(ilm)
+    if float16:
+        arrays = {k: (v.astype(np.float16) if k.startswith("params/")
+                      and np.issubdtype(v.dtype, np.floating) else v)
+                  for k, v in arrays.items()}
     meta = {"format": "vrs_jax.ilm", "format_version": FORMAT_VERSION,
             "config": ilm.config.to_dict(), "image_names": list(ilm.image_names)}
     arrays[_META] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -93,9 +99,9 @@ def to_bytes(ilm: ILM) -> bytes:
     return buf.getvalue()
 
 
-def save_ilm(path: str | Path, ilm: ILM) -> Path:
-    """Write the ILM to ``path`` (.npz), atomically. Returns the path."""
-    return fileio.write_bytes(path, to_bytes(ilm))
+def save_ilm(path: str | Path, ilm: ILM, float16: bool = False) -> Path:
+    """Write the ILM to ``path`` (.npz), atomically (see :func:`to_bytes`). Returns the path."""
+    return fileio.write_bytes(path, to_bytes(ilm, float16))
 
 
 def load_ilm(path: str | Path) -> ILM:
@@ -128,7 +134,8 @@ def from_bytes(raw: bytes, p: Path) -> ILM:
     cfg = NerfConfig.from_dict(meta["config"], p)
     try:
         params = traverse_util.unflatten_dict(
-            {k[len("params/"):]: jnp.asarray(v) for k, v in arrays.items()
+            {k[len("params/"):]: jnp.asarray(v, jnp.float32 if np.issubdtype(
+                v.dtype, np.floating) else v.dtype) for k, v in arrays.items()
              if k.startswith("params/")}, sep="/")
         fields = Field(params=params, center=jnp.asarray(arrays["center"]),
                        scale=jnp.asarray(arrays["scale"]),

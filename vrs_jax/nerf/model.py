@@ -15,9 +15,10 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from vrs_jax.nerf import mipnerf
+from vrs_jax.nerf import hashgrid, mipnerf
 from vrs_jax.nerf.config import NerfConfig
 
 Array = jax.Array
@@ -70,15 +71,38 @@ def make_mlp(cfg: NerfConfig) -> MipMLP:
                   cfg.net_width_condition, cfg.use_viewdirs)
 
 
+# Parameter-tree key of the hash-grid table [L, T, F] (next to the MLP's layers).
+HASH_TABLE = "hash_table"
+
+
 def feature_dims(cfg: NerfConfig) -> tuple[int, int]:
-    """(IPE feature size, view encoding size)."""
-    return 6 * (cfg.max_deg_point - cfg.min_deg_point), 3 * (1 + 2 * cfg.deg_view)
+    """(position feature size: IPE or hash grid, view encoding size)."""
+    if cfg.encoding == "hashgrid":
+        dx = cfg.hash_levels * cfg.hash_features
+    else:
+        dx = 6 * (cfg.max_deg_point - cfg.min_deg_point)
+    return dx, 3 * (1 + 2 * cfg.deg_view)
+
+
+def hash_levels(cfg: NerfConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Static per-level resolutions [L] and dense flags [L] of the hash grid."""
+    res = hashgrid.level_resolutions(cfg.hash_levels, cfg.hash_base_res, cfg.hash_max_res)
+    return res, hashgrid.dense_levels(res, 1 << cfg.hash_log2_table)
 
 
 def init_params(key: Array, cfg: NerfConfig) -> Any:
-    """MLP parameter pytree of one cluster."""
+    """Parameter pytree of one cluster: the MLP's layers (+ ``hash_table`` [L, T, F])."""
     dx, dv = feature_dims(cfg)
-    return make_mlp(cfg).init(key, jnp.zeros((1, 1, dx)), jnp.zeros((1, dv)))["params"]
+    k_mlp, k_grid = jax.random.split(key)
+    if cfg.encoding != "hashgrid":
+        k_mlp = key  # IPE fields keep their historical initialisation
+    params = make_mlp(cfg).init(k_mlp, jnp.zeros((1, 1, dx)), jnp.zeros((1, dv)))["params"]
+    if cfg.encoding == "hashgrid":
+        params = dict(params)
+        params[HASH_TABLE] = hashgrid.init_table(k_grid, cfg.hash_levels,
+                                                 1 << cfg.hash_log2_table, cfg.hash_features,
+                                                 cfg.hash_init_scale)
+    return params
 
 
 def init_stacked_params(key: Array, cfg: NerfConfig, n_clusters: int) -> Any:
@@ -139,11 +163,39 @@ def normalize_rays(field: Field, origins: Array, directions: Array, radii: Array
     return (origins - field.center) * s, directions * s, radii * s
 
 
-def _eval_mlp(params: Any, cfg: NerfConfig, means: Array, covs: Array, view_enc: Array,
-              key: Array | None, randomized: bool) -> tuple[Array, Array]:
-    """IPE + MLP + activations: means/covs [R, S, 3], view_enc [R, Dv] -> rgb, density."""
-    feats = mipnerf.integrated_pos_enc(means, covs, cfg.min_deg_point, cfg.max_deg_point)
-    raw_rgb, raw_density = make_mlp(cfg).apply({"params": params}, feats, view_enc)
+def position_features(params: Any, cfg: NerfConfig, means: Array, covs: Array,
+                      t_vals: Array, radii: Array) -> Array:
+    """Encoded sample positions [R, S, Dx] (normalised frame).
+
+    means, covs: [R, S, 3] frustum Gaussians; t_vals: [R, S + 1]; radii: [R] cone radius at
+    t = 1. IPE reads the Gaussians; the hash grid reads the means mapped to the unit cube and
+    weights its levels by the frustum's radial std (hashgrid.footprint_std).
+    """
+    if cfg.encoding != "hashgrid":
+        return mipnerf.integrated_pos_enc(means, covs, cfg.min_deg_point, cfg.max_deg_point)
+    n_rays, n_samples = means.shape[:2]
+    half = 2.0 * cfg.norm_radius  # the cube [-norm_radius, norm_radius]^3 -> [0, 1]^3
+    x = (means.reshape(-1, 3) + cfg.norm_radius) / half
+    sigma = None
+    if cfg.hash_antialias:
+        sigma = hashgrid.footprint_std(t_vals, radii).reshape(-1) / half
+    res, dense = hash_levels(cfg)
+    feats = hashgrid.encode(params[HASH_TABLE], x, sigma, res, dense)
+    return feats.reshape(n_rays, n_samples, -1)
+
+
+def _mlp_params(params: Any) -> Any:
+    return {k: v for k, v in params.items() if k != HASH_TABLE}
+
+
+def _eval_mlp(params: Any, cfg: NerfConfig, means: Array, covs: Array, t_vals: Array,
+              radii: Array, view_enc: Array, key: Array | None, randomized: bool
+              ) -> tuple[Array, Array]:
+    """Encoding + MLP + activations: means/covs [R, S, 3], t_vals [R, S + 1], radii [R],
+    view_enc [R, Dv] -> rgb [R, S, 3], density [R, S]."""
+    feats = position_features(params, cfg, means, covs, t_vals, radii)
+    raw_rgb, raw_density = make_mlp(cfg).apply({"params": _mlp_params(params)}, feats,
+                                               view_enc)
     if randomized and cfg.density_noise > 0 and key is not None:
         raw_density = raw_density + cfg.density_noise * jax.random.normal(
             key, raw_density.shape, raw_density.dtype)
@@ -181,8 +233,8 @@ def render_levels(field: Field, origins: Array, directions: Array, radii: Array,
             t_vals, (means, covs) = mipnerf.resample_along_rays(
                 keys[1], o, d, r, t_vals, out[-1]["weights"], cfg.num_samples_fine,
                 randomized, cfg.resample_padding)
-        rgb, density = _eval_mlp(field.params, cfg, means, covs, view_enc, keys[2 + level],
-                                 randomized)
+        rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r, view_enc,
+                                 keys[2 + level], randomized)
         res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
         res["t_vals"] = t_vals
         out.append(res)
@@ -228,8 +280,8 @@ def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: A
     k0, k1 = jax.random.split(key)
     t_vals, (means, covs) = mipnerf.sample_along_rays(k0, o, d, r, near, far, num_samples,
                                                       randomized, lindisp=False)
-    rgb, density = _eval_mlp(field.params, cfg, means, covs, _view_encoding(cfg, d), k1,
-                             randomized)
+    rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r,
+                             _view_encoding(cfg, d), k1, randomized)
     res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
     return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"]}
 

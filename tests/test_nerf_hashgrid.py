@@ -1,0 +1,204 @@
+"""Hash-grid encoding: numpy reference interpolation, level weights, gradients, field training,
+ILM save/load with the table."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from vrs_jax.errors import VrsError
+from vrs_jax.nerf import hashgrid as H
+from vrs_jax.nerf import ilm as ilm_lib
+from vrs_jax.nerf import mipnerf
+from vrs_jax.nerf.config import NerfConfig, get_config
+from vrs_jax.nerf.model import HASH_TABLE, Field, init_stacked_params, render_rays
+
+
+def _np_index(corner, n, dense, table_size):
+    """Independent reference: dense vertex id, or Instant-NGP's XOR hash, mod T."""
+    x, y, z = (int(c) for c in corner)
+    if dense:
+        i = x + y * (n + 1) + z * (n + 1) ** 2
+    else:
+        i = (x * 1) ^ ((y * 2654435761) & 0xFFFFFFFF) ^ ((z * 805459861) & 0xFFFFFFFF)
+    return i % table_size
+
+
+def _np_interpolate(table, x, res, dense):
+    """Loop-based float64 trilinear interpolation per level: [N, L, F]."""
+    table = np.asarray(table, np.float64)
+    n_levels, table_size, n_feat = table.shape
+    out = np.zeros((len(x), n_levels, n_feat))
+    for p, pt in enumerate(np.asarray(x, np.float64)):
+        for level in range(n_levels):
+            n = int(res[level])
+            pos = np.clip(pt, 0, 1) * n
+            i0 = np.minimum(np.floor(pos), n - 1)
+            f = pos - i0
+            for dx in (0, 1):
+                for dy in (0, 1):
+                    for dz in (0, 1):
+                        w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                             * (f[2] if dz else 1 - f[2]))
+                        c = i0.astype(int) + (dx, dy, dz)
+                        out[p, level] += w * table[level, _np_index(c, n, dense[level],
+                                                                    table_size)]
+    return out
+
+
+def test_resolutions_and_dense_levels():
+    res = H.level_resolutions(16, 16, 2048)
+    assert res[0] == 16 and res[-1] == 2048 and np.all(np.diff(res) > 0)
+    b = (2048 / 16) ** (1 / 15)
+    np.testing.assert_array_equal(res, np.floor(16 * b ** np.arange(16) + 1e-6))
+    dense = H.dense_levels(np.array([2, 3, 4, 8]), 64)
+    np.testing.assert_array_equal(dense, [True, True, False, False])  # 27, 64 <= 64 < 125
+
+
+def test_interpolation_matches_numpy_reference():
+    rng = np.random.default_rng(0)
+    table = rng.normal(size=(4, 64, 3)).astype(np.float32)
+    res = np.array([2, 3, 5, 11])
+    dense = H.dense_levels(res, 64)
+    assert dense.tolist() == [True, True, False, False]  # both index paths are exercised
+    x = rng.uniform(-0.05, 1.05, size=(50, 3)).astype(np.float32)  # some outside: clipped
+    x[0] = [1.0, 1.0, 1.0]  # the far corner lies in the last cell
+    x[1] = [0.5, 0.5, 0.5]  # exactly on vertices
+    got = H.interpolate(jnp.asarray(table), jnp.asarray(x), res, dense)
+    np.testing.assert_allclose(np.asarray(got), _np_interpolate(table, x, res, dense),
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_interpolation_reproduces_a_trilinear_function_on_dense_levels():
+    # A dense level whose vertex values are an affine function interpolates it exactly.
+    n = 3
+    ii = np.arange(n + 1)
+    z, y, x = np.meshgrid(ii, ii, ii, indexing="ij")  # vertex id x + y(n+1) + z(n+1)^2
+    val = (0.3 + 1.0 * x - 2.0 * y + 0.5 * z) / n
+    table = np.zeros((1, 64, 1), np.float32)
+    table[0, : (n + 1) ** 3, 0] = val.reshape(-1)
+    p = np.random.default_rng(1).uniform(size=(20, 3)).astype(np.float32)
+    got = H.interpolate(jnp.asarray(table), jnp.asarray(p), np.array([n]), np.array([True]))
+    want = 0.3 / n + p[:, 0] - 2 * p[:, 1] + 0.5 * p[:, 2]
+    np.testing.assert_allclose(np.asarray(got)[:, 0, 0], want, atol=1e-5)
+
+
+def test_level_weights_closed_form_range_and_monotonicity():
+    res = np.array([16, 64, 256, 1024])
+    sigma = jnp.asarray(np.geomspace(1e-5, 1e-1, 40), jnp.float32)
+    w = np.asarray(H.level_weights(sigma, res))
+    assert np.all(w >= 0) and np.all(w <= 1)
+    assert np.all(np.diff(w, axis=0) <= 1e-7)  # non-increasing as the footprint grows
+    assert np.all(np.diff(w, axis=1) <= 1e-7)  # finer levels never weigh more
+    # = P(|X| < c / 2), X ~ N(0, sigma^2): the probability of staying in the mean's cell
+    c = 1.0 / res[None, :]
+    s = np.asarray(sigma, np.float64)[:, None]
+    np.testing.assert_allclose(w, 2 * norm.cdf(c / (2 * s)) - 1, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(H.level_weights(jnp.zeros(2), res)), 1.0)
+
+
+def test_footprint_std_is_the_frustum_radial_std():
+    t = jnp.asarray([[1.0, 1.01, 2.0, 2.02]])
+    r = jnp.asarray([0.01])
+    s = np.asarray(H.footprint_std(t, r))[0]
+    _, _, r_var = mipnerf.conical_frustum_moments(t[:, :-1], t[:, 1:], r[:, None])
+    np.testing.assert_allclose(s, np.sqrt(np.asarray(r_var))[0], rtol=1e-6)
+    # thin intervals: ~ radius(t) / 2
+    np.testing.assert_allclose(s[[0, 2]], [0.01 * 1.005 / 2, 0.01 * 2.01 / 2], rtol=1e-3)
+
+
+def test_gradients_are_finite_and_the_table_gradient_is_the_interpolation_weights():
+    rng = np.random.default_rng(2)
+    table = jnp.asarray(rng.normal(size=(3, 128, 2)).astype(np.float32))
+    res = np.array([4, 9, 20])
+    dense = H.dense_levels(res, 128)
+    x = jnp.asarray(rng.uniform(size=(7, 3)).astype(np.float32))
+    sigma = jnp.asarray(rng.uniform(0, 0.05, size=7).astype(np.float32))
+
+    def f(tab, x, s):
+        return jnp.sum(H.encode(tab, x, s, res, dense) ** 2)
+
+    gt, gx, gs = jax.jit(jax.grad(f, argnums=(0, 1, 2)))(table, x, sigma)
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in (gt, gx, gs))
+    # d/dtable of sum(encode) without anti-aliasing: each point spreads weight 1 per level
+    g1 = jax.jit(jax.grad(lambda tab: jnp.sum(H.encode(tab, x, None, res, dense)[:, ::2])))(
+        table)
+    np.testing.assert_allclose(np.asarray(g1[..., 0]).sum(axis=1), [7.0] * 3, rtol=1e-5)
+    # zero footprint: still finite
+    g0 = jax.jit(jax.grad(f, argnums=2))(table, x, jnp.zeros(7))
+    assert np.all(np.isfinite(np.asarray(g0)))
+
+
+def _init(cfg, n):
+    return jax.jit(init_stacked_params, static_argnums=(1, 2))(jax.random.key(0), cfg, n)
+
+
+HG = get_config("test", encoding="hashgrid", hash_levels=8, hash_log2_table=12,
+                hash_max_res=128, net_depth=1, net_width=32, lr_init=1e-2, lr_final=1e-3)
+
+
+def test_hashgrid_field_renders_and_anti_aliases():
+    params = _init(HG, 1)
+    assert params[HASH_TABLE].shape == (1, 8, 4096, 2)
+    p = jax.tree.map(lambda a: a[0], params)
+    # a non-trivial table so that the levels matter
+    p[HASH_TABLE] = jax.random.normal(jax.random.key(1), p[HASH_TABLE].shape)
+    field = Field(p, jnp.zeros(3), jnp.ones(()), jnp.zeros(3))
+    o = jnp.tile(jnp.asarray([[0.0, 0.0, -3.0]]), (4, 1))
+    d = jnp.tile(jnp.asarray([[0.01, 0.02, 1.0]]), (4, 1))
+    near, far = jnp.full(4, 2.0), jnp.full(4, 4.0)
+    radii = jnp.asarray([1e-4, 1e-3, 1e-1, 1.0])
+    render = jax.jit(render_rays, static_argnames=("cfg",))
+    rgb = np.asarray(render(field, o, d, radii, near, far, None, cfg=HG)["rgb"])
+    assert np.all(np.isfinite(rgb))
+    # the same ray with a wider cone renders differently (the radius has meaning) ...
+    assert np.abs(rgb[0] - rgb[3]).max() > 1e-3
+    # ... and without anti-aliasing it does not
+    cfg = NerfConfig.from_dict({**HG.to_dict(), "hash_antialias": False})
+    rgb2 = np.asarray(render(field, o, d, radii, near, far, None, cfg=cfg)["rgb"])
+    np.testing.assert_allclose(rgb2[0], rgb2[3], atol=1e-6)
+
+
+def test_hashgrid_field_trains_on_the_toy_scene(tmp_path):
+    from vrs_jax.nerf import train as T
+    from vrs_jax.nerf.toy import make_toy_scene
+
+    scene = make_toy_scene(tmp_path, n_images=12, size=24, query_every=4)
+    prep = T.prepare(scene, HG, near=2.0, far=6.0)
+    batch = jax.tree.map(jnp.asarray, prep.eval_batch)
+    res = T.train(prep, None, steps=150, progress=False)
+    after = float(T.make_eval_fn(HG)(res.state.params, prep.cluster_data, batch))
+    # Stated margin: >= 21 dB held-out after 150 steps (measured 22.5 dB; the IPE test
+    # config reaches 20.4 dB only after 200 steps).
+    print(f"hash-grid held-out PSNR after 150 steps: {after:.2f} dB")
+    assert after >= 21.0
+
+
+def test_ilm_round_trip_with_a_hash_table(tmp_path):
+    params = _init(HG, 2)
+    fields = Field(params, jnp.zeros((2, 3)), jnp.ones(2), jnp.ones((2, 3)))
+    m = ilm_lib.ILM(fields=fields, cluster_centers=jnp.zeros((2, 3)),
+                    image_cluster=jnp.asarray([0, 1], jnp.int32),
+                    membership=jnp.ones((2, 2), bool), near=jnp.ones(2), far=jnp.full(2, 3.0),
+                    image_names=("a.png", "b.png"), config=HG)
+    p = ilm_lib.save_ilm(tmp_path / "ilm.npz", m)
+    back = ilm_lib.load_ilm(p)
+    assert back.config == HG and NerfConfig.from_dict(HG.to_dict()) == HG
+    for a, b in zip(jax.tree.leaves(m), jax.tree.leaves(back), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a table that does not match the config is refused
+    bad = m.replace(config=NerfConfig.from_dict({**HG.to_dict(), "hash_log2_table": 11}))
+    ilm_lib.save_ilm(tmp_path / "bad.npz", bad)
+    with pytest.raises(VrsError, match="do not match its config"):
+        ilm_lib.load_ilm(tmp_path / "bad.npz")
+
+
+def test_unknown_encoding_is_an_error():
+    with pytest.raises(VrsError, match="unknown NeRF encoding"):
+        get_config("test", encoding="fourier")
+    assert math.isclose(get_config("cpu-small").hash_init_scale, 1e-4)
