@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import common
-from experiments.common import add_scene_args, load_scene_from_args
+from vrs_jax.cli.common import add_scene_args, load_scene_from_args
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.reference import sift

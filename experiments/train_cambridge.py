@@ -1,32 +1,9 @@
-"""Build a vrs-jax map of one Cambridge Landmarks scene from dataset_train.txt.
+"""``python -m experiments.train_cambridge`` from a checkout.
 
-    python -m experiments.train_cambridge --root ROOT --scene NAME --out DIR [--config C]
-
-ROOT/NAME holds dataset_train.txt, dataset_test.txt, the sequence folders and
-reconstruction.nvm (intrinsics).
+The command lives in :mod:`vrs_jax.cli.train_cambridge` (installed as ``vrs-jax-train-cambridge``).
 """
 
-from __future__ import annotations
-
-import argparse
-from pathlib import Path
-
-from experiments.train import build_parser, run
-from vrs_jax.errors import cli_main
-
-
-def parser() -> argparse.ArgumentParser:
-    p = build_parser("cambridge", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", required=True, help="scene folder under --root (e.g. ShopFacade)")
-    return p
-
-
-@cli_main
-def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
-    args.root = str(Path(args.root) / args.scene)
-    return run(args, "cambridge", argv=argv)
-
+from vrs_jax.cli.train_cambridge import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

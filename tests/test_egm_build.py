@@ -179,8 +179,8 @@ def test_unposed_and_empty_scenes_raise(small_synthetic_scene):
 
 
 def test_cli_build_skip_protect_export(small_synthetic_scene, tmp_path, capsys):
-    from experiments.build_egm import main
     from vrs_jax import maps
+    from vrs_jax.cli.build_egm import main
 
     out, col = tmp_path / "map", tmp_path / "colmap"
     args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--out", str(out),

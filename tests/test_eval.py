@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from experiments import evaluate
 from vrs_jax import geometry
+from vrs_jax.cli import evaluate
 from vrs_jax.errors import VrsError
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results, write_results

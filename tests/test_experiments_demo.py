@@ -9,7 +9,7 @@ import pytest
 
 @pytest.mark.slow
 def test_demo_quick_runs_end_to_end(tmp_path, capsys):
-    from experiments import demo
+    from vrs_jax.cli import demo
 
     assert demo.main(["--quick", "--out", str(tmp_path / "demo"), "--quiet"]) == 0
     out = capsys.readouterr().out

@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from experiments import evaluate as evaluate_cli
-from experiments import localize as cli
-from experiments import make_synthetic
 from vrs_jax import maps
+from vrs_jax.cli import evaluate as evaluate_cli
+from vrs_jax.cli import localize as cli
+from vrs_jax.cli import make_synthetic
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.eval.results import read_results

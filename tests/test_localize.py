@@ -163,7 +163,7 @@ def test_real_mode_needs_the_descriptors(tiny_map, loaded):
 
 
 def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene, tmp_path):
-    from experiments import localize as cli
+    from vrs_jax.cli import localize as cli
     from vrs_jax.eval.results import read_results
 
     out = tmp_path / "loc"
@@ -192,7 +192,7 @@ def test_localize_cli_writes_results_and_summary(tiny_map, small_synthetic_scene
 
 
 def test_localize_refuses_queries_that_are_map_images(loaded, small_synthetic_scene):
-    from experiments import localize as cli
+    from vrs_jax.cli import localize as cli
 
     m, queries = loaded
     cli.refuse_map_images(m, queries)  # the map's own split: fine
@@ -202,7 +202,7 @@ def test_localize_refuses_queries_that_are_map_images(loaded, small_synthetic_sc
 
 
 def test_missing_and_wrong_version_maps_give_one_line_errors(tiny_map, tmp_path, capsys):
-    from experiments import localize as cli
+    from vrs_jax.cli import localize as cli
 
     with pytest.raises(VrsError, match="map folder not found"):
         maps.load_map(tmp_path / "nope")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from benchmarks import nerf as bench
-from experiments import train_nerf
 from vrs_jax import geometry
+from vrs_jax.cli import train_nerf
 from vrs_jax.nerf.toy import make_toy_scene
 
 

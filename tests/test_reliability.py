@@ -126,7 +126,7 @@ def nerf_args(root: Path, out: Path, steps: int, *extra: str) -> list[str]:
 @pytest.mark.parametrize("kind", UNWRITABLE)
 def test_unwritable_out_is_one_line_for_every_command(kind, tmp_path, capsys, tiny_map,
                                                       small_synthetic_scene, toy_nerf):
-    from experiments import build_egm, localize, make_synthetic, train, train_nerf
+    from vrs_jax.cli import build_egm, localize, make_synthetic, train, train_nerf
 
     out = unwritable(tmp_path, kind)
     before = snapshot(tiny_map, small_synthetic_scene, toy_nerf, tmp_path)
@@ -152,7 +152,7 @@ def test_unwritable_out_is_one_line_for_every_command(kind, tmp_path, capsys, ti
 
 @pytest.mark.parametrize("kind", UNWRITABLE)
 def test_evaluate_json_into_unwritable_folder(kind, tmp_path, capsys, small_synthetic_scene):
-    from experiments import evaluate
+    from vrs_jax.cli import evaluate
 
     res = tmp_path / "results.txt"
     res.write_text("seq-02/frame-000000.color.png 1 0 0 0 0 0 0\n")
@@ -166,7 +166,7 @@ def test_evaluate_json_into_unwritable_folder(kind, tmp_path, capsys, small_synt
 
 
 def test_unreadable_results_file(capsys, small_synthetic_scene):
-    from experiments import evaluate
+    from vrs_jax.cli import evaluate
 
     # /proc/self/mem is a regular file whose plain read fails (EIO), for root too
     rc = evaluate.main(["--results", "/proc/self/mem", "--format", "7scenes", "--root",
@@ -181,7 +181,7 @@ def test_unreadable_results_file(capsys, small_synthetic_scene):
 @pytest.mark.parametrize("damage", ["map.json garbage", "map.json empty", "egm.npz truncated",
                                     "ilm.npz byte flipped", "descriptors.npz missing"])
 def test_corrupt_map_files_are_one_line(damage, tiny_map, tmp_path, capsys):
-    from experiments import localize
+    from vrs_jax.cli import localize
 
     m = tmp_path / "map"
     shutil.copytree(tiny_map, m, ignore=shutil.ignore_patterns("nerf"))
@@ -281,7 +281,7 @@ def test_rerun_of_a_finished_map_under_a_full_disk_changes_nothing(tiny_map, tmp
 
 @pytest.mark.skipif(IS_ROOT, reason="running as root: chmod 0o555 does not stop writes")
 def test_rerun_of_a_finished_map_in_a_read_only_folder(tiny_map, tmp_path, capsys):
-    from experiments import train
+    from vrs_jax.cli import train
 
     m = tmp_path / "map"
     shutil.copytree(tiny_map, m)
@@ -370,7 +370,7 @@ def test_kill9_during_training_then_resume(toy_nerf, tmp_path):
     final step."""
     out = tmp_path / "run"
     args = nerf_args(toy_nerf, out, 150, "--set", "checkpoint_every=10", "--views", "1")
-    code = f"import sys; sys.argv = ['x'] + {args!r}; from experiments import train_nerf; " \
+    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
            "raise SystemExit(train_nerf.main())"
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env,

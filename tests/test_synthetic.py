@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from experiments import make_synthetic
 from vrs_jax import geometry
+from vrs_jax.cli import make_synthetic
 from vrs_jax.data import synthetic as sy
 from vrs_jax.data.depth import depth_reprojection_errors
 from vrs_jax.data.images import read_depth

@@ -1,0 +1,196 @@
+"""Localize query images against a vrs-jax map.
+
+    python -m experiments.localize --map MAPDIR --out OUTDIR [--mode render|real]
+        [--format F --root DIR [--query-every N] | --images DIR --queries LIST]
+        [--patch-size P] [--top-k K] [--full-sampling] [--basename] [--overwrite] [--verbose]
+
+The queries default to the map's own held-out split (its dataset and reader options are
+recorded in the map); --format/--root name another dataset; --images/--queries name a folder
+of query photos and an hloc query list with intrinsics (``name MODEL width height params...``,
+COLMAP camera models; no ground truth, so no recall). Query images that are map images
+are refused. Writes OUTDIR/results.txt (one line per query: ``name qw qx qy qz tx ty tz``,
+world-to-camera; --basename writes bare file names as the Aachen benchmark wants) and
+OUTDIR/summary.json (metrics when the queries have ground truth, map bytes, median time per
+stage, rays and NeRF evaluations per query, per-query diagnostics). A query that fails (no
+keypoints, no matches, RANSAC failure) still gets a line: the pose of its top-1 retrieved
+reference image, flagged in summary.json; an unreadable query image is listed with its reason.
+Existing results are never replaced without --overwrite. A run record (command line,
+settings, code and library versions, timings) goes to OUTDIR/run.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vrs_jax import fileio, localize, maps
+from vrs_jax.cli.common import add_scene_args, load_scene_from_args, record_run, start_run
+from vrs_jax.data.readers.query_list import query_scene as query_list_scene
+from vrs_jax.errors import VrsError, cli_main
+from vrs_jax.eval import metrics
+from vrs_jax.eval.report import summarize
+from vrs_jax.eval.results import write_results
+from vrs_jax.features.patches import PATCH_SIZES
+from vrs_jax.localize.batch import localize_scene
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m experiments.localize",
+                                description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--map", required=True, help="map folder written by experiments.train*")
+    add_scene_args(p, required=False)
+    p.add_argument("--images", metavar="DIR",
+                   help="folder of query images (with --queries; instead of --format/--root)")
+    p.add_argument("--queries", metavar="LIST",
+                   help="hloc query list with intrinsics, names relative to --images")
+    p.add_argument("--out", required=True, help="output folder (results.txt, summary.json)")
+    p.add_argument("--config", default="cpu-small", choices=sorted(localize.CONFIGS),
+                   help="named query-time configuration (retrieval, matching, rendering, PnP)")
+    p.add_argument("--mode", default="render", choices=["render", "real", "gt"],
+                   help="render: VRS-NeRF (NeRF-rendered patches); real: the hierarchical "
+                        "baseline (the map's stored descriptors of real reference patches); "
+                        "gt: an alias of real")
+    p.add_argument("--patch-size", type=int, default=None, choices=PATCH_SIZES,
+                   help="rendered patch size P (render mode; default: the map's)")
+    p.add_argument("--literal", action="store_true",
+                   help="paper-literal patches: axis-aligned whole pixels, no scale/rotation")
+    p.add_argument("--top-k", type=int, default=None, help="retrieved reference images")
+    p.add_argument("--full-sampling", action="store_true",
+                   help="render with coarse+fine sampling instead of the depth-guided interval")
+    p.add_argument("--basename", action="store_true",
+                   help="write bare file names in results.txt (Aachen benchmark)")
+    p.add_argument("--no-timing", action="store_true",
+                   help="run the fused jitted localize (no per-stage times)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace results already in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--verbose", action="store_true", help="debug log lines")
+    return p
+
+
+def make_config(m: maps.Map, args) -> localize.LocalizeConfig:
+    """The named query-time config with the command line's overrides."""
+    over = {"source": args.mode}
+    if args.patch_size is not None or args.literal:
+        patches = m.config.features.patches
+        if args.patch_size is not None:
+            patches = dataclasses.replace(patches, size=args.patch_size)
+        if args.literal:
+            patches = dataclasses.replace(patches, mode="literal")
+        over["patches"] = patches
+    if args.top_k is not None:
+        over["top_k"] = args.top_k
+    if args.full_sampling:
+        over["depth_guided"] = False
+    return localize.get_config(args.config, **over)
+
+
+def query_scene(m: maps.Map, args):
+    """The query images: the map's own held-out split, those of the named dataset, or those
+    of a query list."""
+    if args.images is not None or args.queries is not None:
+        if args.images is None or args.queries is None:
+            raise VrsError("pass both --images and --queries")
+        if args.root is not None or args.fmt is not None:
+            raise VrsError("--images/--queries and --format/--root are exclusive: name one "
+                           "set of queries")
+        queries = query_list_scene(args.queries, args.images)
+        refuse_map_images(m, queries)
+        return queries
+    if args.root is None and args.fmt is None:
+        src = m.source
+        if not src.format or not src.root:
+            raise VrsError("the map records no dataset; pass --format and --root", args.map)
+        args.fmt, args.root = src.format, src.root
+        opts = dict(src.options)
+        args.query_every = int(opts["query_every"]) if "query_every" in opts else None
+        args.downscale = int(opts["downscale"]) if "downscale" in opts else None
+        args.opt = [f"{k}={v}" for k, v in opts.items() if k not in ("query_every",
+                                                                   "downscale")]
+    elif args.root is None or args.fmt is None:
+        raise VrsError("pass both --format and --root (or neither: the map's own queries)")
+    scene = load_scene_from_args(args, sfm_dir=Path(args.out) / "sfm")
+    queries = scene.queries()
+    if len(queries) == 0:
+        raise VrsError("the dataset has no query images (for formats without a split pass "
+                       "--query-every N)", scene.root)
+    refuse_map_images(m, queries)
+    return queries
+
+
+def refuse_map_images(m: maps.Map, queries) -> None:
+    """VrsError if any query image is one of the map's reference images (a split mismatch
+    would leak test images into the map). When the map records its image folder and the
+    queries come from another one, the image files are compared (photos in two folders may
+    share names); else the names."""
+    if m.source.root and Path(m.source.root).resolve() != Path(queries.root).resolve():
+        ref_files = {(Path(m.source.root) / n).resolve() for n in m.names}
+        leaked = sorted(n for n, p in zip(queries.names, queries.image_paths, strict=True)
+                        if Path(p).resolve() in ref_files)
+    else:
+        leaked = sorted(set(queries.names) & set(m.names))
+    if leaked:
+        raise VrsError(f"{len(leaked)} query images are map images ({', '.join(leaked[:3])}"
+                       f"{' ...' if len(leaked) > 3 else ''}): the split differs from the map's",
+                       queries.root)
+
+
+def run(args, argv: list[str] | None = None) -> dict:
+    start_run(args)
+    t_start = time.perf_counter()
+    out = Path(args.out)
+    if (out / "results.txt").exists() and not args.overwrite:
+        raise VrsError("holds results of an earlier run; pass --overwrite or choose another "
+                       "--out", out)
+    fileio.check_writable(out)
+    m = maps.load_map(args.map, descriptors=args.mode != "render")
+    cfg = make_config(m, args)
+    queries = query_scene(m, args)
+    results, info = localize_scene(m, queries, cfg, progress=not args.quiet,
+                                   timed=not args.no_timing)
+    ok = [i for i, r in enumerate(results) if r is not None]
+    R = np.stack([np.asarray(results[i].R, np.float64) for i in ok]) if ok else np.zeros((0, 3,
+                                                                                        3))
+    t = np.stack([np.asarray(results[i].t, np.float64) for i in ok]) if ok else np.zeros((0, 3))
+    write_results(out / "results.txt", [queries.names[i] for i in ok], R, t,
+                  basename=args.basename)
+    summary = summarize(queries, results, info, m, cfg, Path(args.map))
+    summary["per_query"] = [per_query(n, r, info["errors"].get(n))
+                            for n, r in zip(queries.names, results, strict=True)]
+    fileio.write_json(out / "summary.json", metrics.json_ready(summary))
+    record_run(out, args, cfg, {"total": time.perf_counter() - t_start,
+                                **{k: v for k, v in info["timing_s"].items() if v is not None}},
+               argv)
+    if summary["recall"] is not None:
+        print(metrics.format_table(summary, title=f"{cfg.source} mode, {len(queries)} queries"))
+    print(f"{summary['n_success']}/{len(queries)} localized, {summary['n_fallback']} fallback, "
+          f"{summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
+    return summary
+
+
+def per_query(name: str, r, error: str | None) -> dict:
+    """A query's diagnostics for summary.json: success, fallback, inliers, matches and why it
+    has no PnP pose (``error``: None when localized)."""
+    if r is None:
+        return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
+                "error": error or "no result"}
+    ok = bool(r.success)
+    return {"name": name, "success": ok, "fallback": bool(r.fallback),
+            "inliers": int(r.n_inliers), "matches": int(r.n_matches),
+            "error": None if ok else "PnP failed (too few matches or inliers): the top-1 "
+                                     "reference pose is written"}
+
+
+@cli_main
+def main(argv: list[str] | None = None) -> int:
+    run(build_parser().parse_args(argv), argv)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

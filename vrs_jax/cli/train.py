@@ -1,0 +1,95 @@
+"""Build a complete vrs-jax map (EGM + NeRF ILM) from any supported dataset or photo folder.
+
+    python -m experiments.train --format F --root DIR --out MAPDIR [--config C]
+        [--downscale N] [--query-every N] [--steps N] [--minutes M] [--set KEY=VALUE]
+
+The reference images (the dataset's training split, or all but every N-th image) are mapped:
+SIFT keypoints, covisible pairs matched and verified, 3D points triangulated with the known
+poses (pycolmap), keypoints linked to points kept per image, VLAD global descriptors, the
+real-patch descriptors (for the real-patch mode). Then one Mip-NeRF per K-means cluster of
+reference cameras is trained (orbax checkpoints; re-running resumes; a larger --steps continues
+a finished map). ``--format images`` takes a folder of unposed photos and poses them with
+pycolmap's incremental SfM first (work files in MAPDIR/sfm). Everything is written into --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from vrs_jax import maps
+from vrs_jax.cli.common import (
+    add_scene_args,
+    load_scene_from_args,
+    record_run,
+    scene_opts,
+    start_run,
+)
+from vrs_jax.errors import cli_main
+from vrs_jax.maps.build import describe
+from vrs_jax.nerf.config import parse_overrides
+
+
+def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
+                 description: str | None = None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"python -m experiments.{'train' if fmt is None else 'train_' + fmt}",
+        description=description or __doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    add_scene_args(p, fmt)
+    p.add_argument("--out", required=True, help="map folder to write (created; resumable)")
+    p.add_argument("--config", default=default_config, choices=sorted(maps.CONFIGS),
+                   help="named map configuration (EGM and NeRF settings, stored by value)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="NeRF training steps, also the lr schedule's length (default: the "
+                        "config's; a larger value continues a finished map)")
+    p.add_argument("--minutes", type=float, default=None,
+                   help="wall-clock cap on this run's NeRF training (re-run to continue)")
+    p.add_argument("--clusters", type=int, default=None,
+                   help="number of NeRF clusters (default: the config's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "
+                        "trains on whole images only, as the paper)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--verbose", action="store_true",
+                   help="debug log lines, and COLMAP's log lines (SfM)")
+    return p
+
+
+def map_config(args: argparse.Namespace) -> maps.MapConfig:
+    """The named config with the command line's NeRF overrides."""
+    over = parse_overrides(args.set)
+    if args.steps is not None:
+        over["max_steps"] = args.steps
+    if args.clusters is not None:
+        over["n_clusters"] = args.clusters
+    return maps.get_config(args.config, **over)
+
+
+def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None = None) -> int:
+    import time
+    from pathlib import Path
+
+    from vrs_jax import fileio
+
+    start_run(args)
+    t0 = time.perf_counter()
+    cfg = map_config(args)
+    out = Path(args.out)
+    fileio.check_writable(out)  # before any work starts
+    scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
+    print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} reference and "
+          f"{int(scene.is_query.sum())} query images")
+    maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
+                   source_options=scene_opts(args))
+    print(f"[3/3] {describe(out)}")
+    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
+    return 0
+
+
+@cli_main
+def main(argv: list[str] | None = None) -> int:
+    return run(build_parser().parse_args(argv), argv=argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
