@@ -44,16 +44,20 @@ def test_localize_benchmark_json(localize_doc, loaded):
     doc = localize_doc
     assert ENV_KEYS <= set(doc) and doc["benchmark"] == "localize"
     assert doc["versions"]["jax"] and doc["machine"]["cpu_count"] >= 1
-    assert [r["mode"] for r in doc["rows"]] == ["render", "real"]
+    assert [r["mode"] for r in doc["rows"]] == ["render", "render-full", "real", "sift"]
     egm = loaded.egm
-    for r in doc["rows"]:
+    sift = doc["rows"][3]
+    assert sift["n_queries"] == 2 and sift["map_bytes"]["total"] > 0
+    full = doc["rows"][1]
+    assert not full["localize_config"]["depth_guided"] and full["timing_s"]["render"] > 0
+    for r in doc["rows"][:3]:
         assert r["n_queries"] == 2 and len(r["per_query"]["t_err_m"]) == 2
         assert set(r["recall"]) >= {"5cm_5deg", "2cm_2deg", "25cm_2deg"}
         assert all(0.0 <= v <= 1.0 for v in r["recall"].values())
         assert _finite(r["localize_s_per_query"]) and r["localize_s_per_query"] > 0
         assert all(_finite(r["timing_s"][k]) for k in ("retrieval", "matching", "ransac"))
         cfg = r["localize_config"]
-        if r["mode"] == "render":
+        if r["mode"] == "render":  # depth-guided
             # rays per query = k x mean valid keypoints per image x P^2
             mean_valid = np.asarray(egm.kp_mask).sum(1).mean()
             expect = cfg["top_k"] * mean_valid * r["patch_size"] ** 2
@@ -61,12 +65,12 @@ def test_localize_benchmark_json(localize_doc, loaded):
             assert r["nerf_evals_per_query"] == pytest.approx(
                 expect * cfg["narrow_samples"])
             assert r["timing_s"]["render"] > 0
-        else:
+        elif r["mode"] == "real":
             assert r["rays_per_query"] == 0 and r["timing_s"]["render"] == 0
             assert r["map_bytes"]["total"] > r["map_bytes"]["descriptors"] > 0
             assert r["map_bytes"]["ilm"] == 0
     # the baseline localizes the easy synthetic queries (real patches)
-    assert _finite(doc["rows"][1]["median_t_cm"]) and doc["rows"][1]["median_t_cm"] < 5
+    assert _finite(doc["rows"][2]["median_t_cm"]) and doc["rows"][2]["median_t_cm"] < 5
     assert doc["maps"]["synthetic"]["n_queries_used"] == 2
 
 
