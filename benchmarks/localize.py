@@ -7,14 +7,15 @@ For each scene, every query is localized in ``render`` mode (descriptors of NeRF
 patches: VRS-NeRF), ``real`` mode (the map's stored descriptors of the real reference
 patches: the hierarchical baseline) and by the SIFT reference (``vrs_jax.reference.sift``:
 COLMAP SIFT, triangulation with the known poses, pycolmap absolute pose), with the map's
-patch size; ``render`` samples each patch ray depth-guided (the config's narrow interval
-around the keypoint's 3D point) and ``render-full`` renders the same map with the NeRF's full
-coarse + fine sampling (the ``paper`` localize config's choice). Reported per scene and method: median translation / rotation error, recall at
-hloc's thresholds and relative to the scene size (median distance of the cameras to their
-centroid), failures and fallbacks, distinct inliers, the median time per query of each stage
-(query preparation separately; a warm-up query compiles first), rays and NeRF evaluations
-per query, and map bytes. Each run is measured afresh and recorded in WORK/runs/ (the
-ablation and figures reuse those records).
+patch size. ``render`` samples each patch ray depth-guided (the config's narrow interval
+around the keypoint's 3D point); ``render-full`` renders the same map with the NeRF's full
+coarse + fine sampling (the ``paper`` localize config's choice). Reported per scene and
+method: median translation / rotation error, recall at hloc's thresholds and relative to the
+scene size (median distance of the cameras to their centroid), failures and fallbacks,
+distinct inliers, the median time per query of each stage (query preparation separately; a
+warm-up query compiles first), rays and NeRF evaluations per query, and map bytes. Each run
+is measured afresh and recorded in WORK/runs/ (the ablation and figures reuse those
+records).
 """
 
 from __future__ import annotations
