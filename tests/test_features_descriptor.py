@@ -245,8 +245,10 @@ def test_warped_keypoints_find_their_originals_real_photo():
     root = shared_path("kapture_samples", "samples", "maupertuis", "colmap", "images")
     fern = shared_path("llff_fern", "data", "nerf_llff_data", "fern", "images_8")
     from vrs_jax.data.images import read_gray
-    img = read_gray(root / "00.jpg", size=(240, 136))
-    other = read_gray(fern / "IMG_4026.png", size=(240, 136))  # an unrelated scene
+    # the photos' own aspect ratios (reading checks them), then both cropped to 240x136
+    img = read_gray(root / "00.jpg", size=(240, 135))
+    img = np.concatenate([img, img[-1:]], axis=0)
+    other = read_gray(fern / "IMG_4026.png", size=(240, 180))[22:158]  # an unrelated scene
     warps = [(30, 1.0), (180, 1.0), (-135, 0.7), (45, 0.5), (60, 2.0)]
     res = _measure(img, other, warps, (352, 352), noise=0.1)
     _report("maupertuis 00.jpg (240x136) vs unrelated fern, keypoints perturbed", res)

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from vrs_jax import fileio
+from vrs_jax.errors import VrsError
 
 RECORD_FORMAT = "vrs-jax run record"
 RECORD_VERSION = 1
@@ -220,8 +221,17 @@ def write_run_record(out_dir: str | Path, record: Mapping[str, Any]) -> Path:
 
     Returns:
       the path written.
+    Raises:
+      VrsError naming the folder when it cannot be written (permission, disk full); nothing
+      is left behind.
     """
-    d = Path(out_dir)
+    try:
+        return _write_record(Path(out_dir), record)
+    except OSError as e:
+        raise VrsError(f"cannot write the run record: {fileio.reason(e)}", out_dir) from None
+
+
+def _write_record(d: Path, record: Mapping[str, Any]) -> Path:
     d.mkdir(parents=True, exist_ok=True)
     data = (json.dumps(_plain(record), indent=1, allow_nan=False, default=str) + "\n").encode()
     fd, tmp = tempfile.mkstemp(prefix=".run-", suffix=".json.tmp", dir=d)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from vrs_jax.errors import VrsError
@@ -96,8 +97,9 @@ def start_run(args: argparse.Namespace) -> None:
 
 
 def record_run(out_dir: str | Path, args: argparse.Namespace, config=None,
-               timings: dict | None = None, argv: list[str] | None = None) -> Path:
-    """Write the run record (``out_dir/run.json``, never overwriting an earlier one).
+               timings: dict | None = None, argv: list[str] | None = None) -> Path | None:
+    """Write the run record (``out_dir/run.json``, never overwriting an earlier one). A record
+    that cannot be written (disk full) is a warning: the run's own results are complete.
 
     Args:
       args: the parsed arguments (recorded under ``args``).
@@ -115,4 +117,8 @@ def record_run(out_dir: str | Path, args: argparse.Namespace, config=None,
     if config is not None:
         values["config"] = to_dict(config) if dataclasses.is_dataclass(config) else config
     cmd = sys.argv if argv is None else [sys.argv[0], *argv]
-    return write_run_record(out_dir, run_record(values, cmd, timings))
+    try:
+        return write_run_record(out_dir, run_record(values, cmd, timings))
+    except VrsError as e:
+        logging.getLogger("vrs_jax").warning("%s", e)
+        return None
