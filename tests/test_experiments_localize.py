@@ -105,3 +105,27 @@ def test_make_synthetic_writes_run_record(tmp_path):
     rec = _record(out)
     assert rec["config"]["config"]["width"] == 32 and rec["config"]["args"]["n_ref"] == 2
     assert rec["timings_s"]["total"] > 0
+
+
+def test_photos_to_map_to_results_in_two_commands(tmp_path):
+    """README: a folder of unposed photos -> a map (SfM, EGM, NeRF) -> localized held-out
+    photos, with the map's own SfM frame reused by localize."""
+    from conftest import shared_path
+
+    from vrs_jax import maps
+    from vrs_jax.cli import localize as loc_cli
+    from vrs_jax.cli import train as train_cli
+    from vrs_jax.eval.results import read_results
+
+    photos = shared_path("hloc_sacre_coeur", "datasets", "sacre_coeur", "mapping")
+    out = tmp_path / "map"
+    assert train_cli.main(["--format", "images", "--root", str(photos), "--query-every", "5",
+                           "--out", str(out), "--config", "test", "--steps", "20",
+                           "--quiet"]) == 0
+    m = maps.load_map(out, descriptors=False)
+    assert m.source.format == "images" and len(m.source.query_names) == 2
+    assert loc_cli.main(["--map", str(out), "--out", str(tmp_path / "loc"), "--config", "test",
+                         "--mode", "real", "--quiet"]) == 0
+    res = read_results(tmp_path / "loc" / "results.txt")
+    assert sorted(res) == sorted(m.source.query_names)
+    assert not (tmp_path / "loc" / "sfm").exists()  # the map's SfM was reused

@@ -78,9 +78,10 @@ def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None,
             raise VrsError("--downscale does not apply to --format images")
         scene = sfm.scene_from_images(args.root, sfm_dir,
                                       verbose=getattr(args, "verbose", False))
-        if args.query_every:
-            import dataclasses
+        import dataclasses
 
+        scene = dataclasses.replace(scene, format="images")  # what a map records
+        if args.query_every:
             from vrs_jax.data.readers._common import query_mask
 
             scene = dataclasses.replace(scene, is_query=query_mask(scene.names,

@@ -102,8 +102,10 @@ def query_scene(m: maps.Map, args):
         queries = query_list_scene(args.queries, args.images)
         refuse_map_images(m, queries)
         return queries
+    sfm_dir = Path(args.out) / "sfm"
     if args.root is None and args.fmt is None:
         src = m.source
+        sfm_dir = Path(args.map) / "sfm"  # photos: the map's own SfM poses (same frame)
         if not src.format or not src.root:
             raise VrsError("the map records no dataset; pass --format and --root", args.map)
         args.fmt, args.root = src.format, src.root
@@ -114,7 +116,7 @@ def query_scene(m: maps.Map, args):
                                                                    "downscale")]
     elif args.root is None or args.fmt is None:
         raise VrsError("pass both --format and --root (or neither: the map's own queries)")
-    scene = load_scene_from_args(args, sfm_dir=Path(args.out) / "sfm")
+    scene = load_scene_from_args(args, sfm_dir=sfm_dir)
     queries = scene.queries()
     if len(queries) == 0:
         raise VrsError("the dataset has no query images (for formats without a split pass "
