@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a NerfConfig field (repeatable)")
     p.add_argument("--localize", action="append", default=[], metavar="KEY=VALUE",
                    help="override a LocalizeConfig field of the renderer (depth_guided, "
-                        "narrow_samples, depth_margin), e.g. to separate the field's error "
+                        "narrow_samples, narrow_fine, depth_margin), e.g. to separate the field's error "
                         "from the depth-guided sampling's")
     p.add_argument("--render", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NerfConfig sampling field at rendering only (e.g. "
@@ -330,7 +330,8 @@ def run(args) -> dict[str, Any]:
            "map_config": m.config.name, "nerf_config": ncfg.to_dict(),
            "localize": {"patch_size": m.config.features.patches.size, "ratio": lcfg.ratio,
                         "mutual": lcfg.mutual, "depth_guided": lcfg.depth_guided,
-                        "narrow_samples": lcfg.narrow_samples},
+                        "narrow_samples": lcfg.narrow_samples,
+                        "narrow_fine": lcfg.narrow_fine, "depth_margin": lcfg.depth_margin},
            "result": row}
     write_json(args.json, doc)
     log(f"wrote {args.json}")

@@ -186,7 +186,7 @@ def sweep(ctx, idx: np.ndarray, args) -> list[dict]:
             ms_patch = 1000.0 * sec / n_patches
             rows.append({
                 "patch_size": P, "depth_guided": dg,
-                "sampler": f"depth-guided {cfg.narrow_samples}" if dg else
+                "sampler": f"depth-guided {cfg.narrow_samples}+{cfg.narrow_fine}" if dg else
                            f"coarse+fine {m.config.nerf.num_samples_coarse}"
                            f"+{m.config.nerf.num_samples_fine}",
                 "patches_timed": n_patches, "seconds": sec, "compile_s": comp,

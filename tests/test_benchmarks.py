@@ -63,7 +63,7 @@ def test_localize_benchmark_json(localize_doc, loaded):
             expect = cfg["top_k"] * mean_valid * r["patch_size"] ** 2
             assert r["rays_per_query"] == pytest.approx(expect)
             assert r["nerf_evals_per_query"] == pytest.approx(
-                expect * cfg["narrow_samples"])
+                expect * (cfg["narrow_samples"] + cfg["narrow_fine"]))
             assert r["timing_s"]["render"] > 0
         elif r["mode"] == "real":
             assert r["rays_per_query"] == 0 and r["timing_s"]["render"] == 0

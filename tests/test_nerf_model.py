@@ -94,6 +94,22 @@ def test_narrow_interval_renderer():
     assert np.all((np.asarray(out["depth"]) >= 3.8 - 1e-5) & (np.asarray(out["depth"]) <= 4.2))
 
 
+def test_narrow_coarse_to_fine_is_the_full_renderer_on_the_same_interval():
+    # With the ray's own [near, far] and the config's sample counts, the narrow renderer's
+    # two passes are exactly mip-NeRF's coarse and fine levels (independent path:
+    # render_levels), and its resampled depths stay inside the interval.
+    cfg = CFG
+    assert not cfg.lindisp and cfg.num_levels == 2
+    o, d, r, near, far = _rays(32)
+    f = _field()
+    full = model.render_rays(f, o, d, r, near, far, None, cfg)
+    narrow = model.render_rays_narrow(f, o, d, r, near, far, None, cfg,
+                                      cfg.num_samples_coarse, cfg.num_samples_fine)
+    np.testing.assert_allclose(np.asarray(narrow["rgb"]), np.asarray(full["rgb"]), atol=1e-5)
+    one = model.render_rays_narrow(f, o, d, r, near, far, None, cfg, cfg.num_samples_coarse)
+    assert not np.allclose(np.asarray(one["rgb"]), np.asarray(full["rgb"]), atol=1e-4)
+
+
 def test_loss_is_point_one_coarse_plus_fine():
     coarse = {"rgb": jnp.zeros((4, 3))}
     fine = {"rgb": jnp.full((4, 3), 0.5)}

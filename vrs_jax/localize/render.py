@@ -2,8 +2,9 @@
 
 Each retrieved reference image's 3D-linked keypoints are cast as patch cones
 (:func:`vrs_jax.features.rays.patch_rays`, the grid that reads real patches) and rendered with
-the NeRF of the image's cluster, either depth-guided (one pass of ``narrow_samples`` around the
-keypoint's 3D point) or with the map's full coarse + fine sampling. Pure and jittable.
+the NeRF of the image's cluster, either depth-guided (``narrow_samples`` around the
+keypoint's 3D point, then ``narrow_fine`` resampled where the surface is) or with the map's
+full coarse + fine sampling. Pure and jittable.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Ar
         def go(_):
             if cfg.depth_guided:
                 out = render_rays_narrow(field, oc, dc, rc, nc, fc, None, nerf_cfg,
-                                         cfg.narrow_samples)
+                                         cfg.narrow_samples, cfg.narrow_fine)
             else:
                 out = render_rays(field, oc, dc, rc, nc, fc, None, nerf_cfg)
             return out["rgb"]
@@ -100,8 +101,8 @@ def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
 
 
 def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:
-    """MLP evaluations per rendered ray (depth-guided: one pass; full: coarse + fine)."""
+    """MLP evaluations per rendered ray (depth-guided: narrow + resampled; full: coarse + fine)."""
     if cfg.depth_guided:
-        return cfg.narrow_samples
+        return cfg.narrow_samples + cfg.narrow_fine
     c = m.config.nerf
     return c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine
