@@ -4,9 +4,11 @@ degenerate sizes; jit."""
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from vrs_jax.features import matching
 from vrs_jax.features.matching import match, match_jit, pairwise_distances
 
 
@@ -131,3 +133,51 @@ def test_pairwise_distances():
     np.testing.assert_allclose(np.asarray(pairwise_distances(a, b)), ref, rtol=1e-5)
     # self-distances: float32 cancellation leaves sqrt(eps * 2 |a|^2) ~ 1e-3 for |a|^2 ~ 7
     assert float(np.asarray(pairwise_distances(a, a)).diagonal().max()) < 4e-3
+
+
+def _guided_reference(uv_q, dq, mq, uv_r, dr, mr, gr, radius, ratio):
+    """Brute-force numpy reference of guided_match."""
+    nq, nr = len(uv_q), len(uv_r)
+    D = np.full((nq, nr), np.inf)
+    for a in range(nq):
+        for b in range(nr):
+            if mq[a] and mr[b] and np.sum((uv_q[a] - uv_r[b]) ** 2) < radius ** 2:
+                D[a, b] = np.linalg.norm(dq[a] - dr[b])
+    valid = np.zeros(nq, bool)
+    idx = np.zeros(nq, int)
+    for a in range(nq):
+        if not np.isfinite(D[a]).any():
+            continue
+        b = int(np.argmin(D[a]))
+        rivals = [D[a, c] for c in range(nr) if gr[c] != gr[b]]
+        d2 = min(rivals) if rivals else np.inf
+        ok = D[a, b] < ratio * d2 or np.isinf(d2)
+        ok &= int(np.argmin(D[:, b])) == a
+        valid[a], idx[a] = ok, b
+    return idx, valid
+
+
+def test_guided_match_against_brute_force():
+    rng = np.random.default_rng(3)
+    nq, nr = 60, 40
+    uv_q = rng.uniform(0, 100, (nq, 2))
+    uv_r = rng.uniform(0, 100, (nr, 2))
+    dq = rng.normal(size=(nq, 16))
+    dq /= np.linalg.norm(dq, axis=1, keepdims=True)
+    dr = rng.normal(size=(nr, 16))
+    dr /= np.linalg.norm(dr, axis=1, keepdims=True)
+    # ten true pairs: close in the image and in descriptor space
+    uv_r[:10] = uv_q[:10] + rng.normal(0, 1.0, (10, 2))
+    dr[:10] = dq[:10] + rng.normal(0, 0.05, (10, 16))
+    gr = np.arange(nr) % 30  # a few references share a group (the same 3D point)
+    mq = rng.uniform(size=nq) > 0.1
+    mr = rng.uniform(size=nr) > 0.1
+    idx, valid, _ = matching.guided_match(uv_q, dq, mq, uv_r, dr, mr, jnp.asarray(gr), 12.0, 0.9)
+    ridx, rvalid = _guided_reference(uv_q, dq, mq, uv_r, dr, mr, gr, 12.0, 0.9)
+    np.testing.assert_array_equal(np.asarray(valid), rvalid)
+    np.testing.assert_array_equal(np.asarray(idx)[rvalid], ridx[rvalid])
+    true = np.flatnonzero(mq[:10] & mr[:10])
+    assert np.all(np.asarray(valid)[true]) and np.all(np.asarray(idx)[true] == true)
+    # nothing outside the radius is ever chosen
+    far = np.sum((uv_q - uv_r[np.asarray(idx)]) ** 2, 1) >= 144
+    assert not np.any(np.asarray(valid) & far)

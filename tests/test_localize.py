@@ -100,6 +100,28 @@ def test_timed_and_fused_give_identical_results(loaded, source):
     assert (times["render"] > 0) == (source == "render")
 
 
+@pytest.mark.parametrize("source", ["real", "render"])
+def test_guided_pass_does_not_make_a_correct_pose_worse(loaded, source):
+    """A guided pass (render mode: patches rendered from the first pose) keeps every
+    localized query localized and within 5 cm, and finds matches of its own."""
+    m, queries = loaded
+    cfg0 = localize.get_config("test", source=source)
+    cfg1 = localize.get_config("test", source=source, guided_passes=1)
+    changed = 0
+    for i in range(3):
+        q = _query(m, queries, i, cfg0)
+        r0, r1 = localize.localize(m, q, cfg0), localize.localize(m, q, cfg1)
+        e0 = geometry.pose_errors(r0.R, r0.t, queries.R[i], queries.t[i])[0]
+        e1 = geometry.pose_errors(r1.R, r1.t, queries.R[i], queries.t[i])[0]
+        if bool(r0.success):
+            assert bool(r1.success) and float(e1) < 0.05, (i, float(e0), float(e1))
+            assert int(r1.n_inliers) >= int(r0.n_inliers)
+        changed += int(r1.n_matches) != int(r0.n_matches)
+    assert changed > 0  # the guided matches replaced the first pass's somewhere
+    s = localize.run_stages(m, _query(m, queries, 0, cfg1), cfg1)
+    assert "result" in s
+
+
 def test_stages_stop_after_matching(loaded):
     m, queries = loaded
     cfg = localize.get_config("test", source="real")

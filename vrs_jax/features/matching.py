@@ -85,3 +85,39 @@ def match(desc_q, mask_q, desc_r, mask_r, ratio: float | None = DEFAULT_RATIO,
 
 
 match_jit = match  # backwards-compatible name; ``match`` itself is jitted
+
+
+def guided_match(uv_q, desc_q, mask_q, uv_r, desc_r, mask_r, group_r, radius: float,
+                 ratio: float | None = DEFAULT_RATIO):
+    """Matching with a geometric prior: each query keypoint considers only the references
+    predicted within ``radius`` pixels of it (their projection under a pose estimate).
+
+    Mutual nearest neighbour among those candidates, and the ratio test against the nearest
+    candidate of another group (references of one group are the same 3D point seen from
+    several images, not rivals).
+
+    Args:
+      uv_q: [Nq, 2] query keypoint positions; desc_q: [Nq, D]; mask_q: [Nq] bool.
+      uv_r: [Nr, 2] predicted reference positions; desc_r: [Nr, D]; mask_r: [Nr] bool;
+      group_r: [Nr] int group id (the 3D point).
+      radius: search radius in pixels; ratio: Lowe's ratio (None: off; static).
+    Returns:
+      idx: [Nq] int32 chosen reference per query (0 when none); valid: [Nq] bool;
+      dist: [Nq] descriptor distance (+inf when none).
+    """
+    inf = jnp.float32(jnp.inf)
+    uv_q = jnp.asarray(uv_q, jnp.float32)
+    uv_r = jnp.asarray(uv_r, jnp.float32)
+    near = jnp.sum((uv_q[:, None, :] - uv_r[None, :, :]) ** 2, -1) < jnp.float32(radius) ** 2
+    ok = near & jnp.asarray(mask_q, bool)[:, None] & jnp.asarray(mask_r, bool)[None, :]
+    d = jnp.where(ok, pairwise_distances(desc_q, desc_r), inf)  # [Nq, Nr]
+    idx = jnp.argmin(d, axis=1).astype(jnp.int32)
+    d1 = jnp.take_along_axis(d, idx[:, None], axis=1)[:, 0]
+    valid = jnp.isfinite(d1)
+    if ratio is not None:
+        rival = group_r[None, :] != group_r[idx][:, None]
+        d2 = jnp.min(jnp.where(rival, d, inf), axis=1)
+        valid &= (d1 < ratio * d2) | jnp.isinf(d2)
+    back = jnp.argmin(d, axis=0).astype(jnp.int32)  # [Nr] nearest candidate query
+    valid &= back[idx] == jnp.arange(d.shape[0], dtype=jnp.int32)
+    return idx, valid, d1

@@ -114,3 +114,37 @@ def unique_literal_pixels(positions: Array, mask: Array) -> tuple[Array, Array, 
     pixels = xy.astype(jnp.float32) + 0.5
     return pixels, inverse.reshape(kshape), count
 
+
+
+def transfer_keypoints(kp: Array, X: Array, K_ref: Array, R_ref: Array, t_ref: Array,
+                       dist_ref: Array | None, K: Array, R: Array, t: Array
+                       ) -> tuple[Array, Array]:
+    """Keypoints of a reference view moved into another view through their 3D points.
+
+    A keypoint's frame (centre, scale, orientation) is the image of a small fronto-parallel
+    disc at its 3D point. In the other (pinhole) camera the centre is the point's projection,
+    the scale shrinks with depth and focal length (s f / z_ref -> s' f' / z), and the
+    orientation is that of the projected direction: the point one scale along the keypoint's
+    orientation, lifted to the 3D point's depth in the reference and projected.
+
+    Args:
+      kp: [Kp, 4] reference keypoints (x, y, scale, angle); X: [Kp, 3] their 3D points.
+      K_ref, R_ref, t_ref, dist_ref: the reference camera ([3, 3], [3, 3], [3], [5] or None).
+      K, R, t: the target pinhole camera (world-to-camera).
+    Returns:
+      kp_new: [Kp, 4] keypoints in the target view; z: [Kp] depth of X in the target view
+      (<= 0: behind it; callers mask those).
+    """
+    uv, z = geometry.project(K, R, t, X)
+    z_ref = (X @ R_ref.T + t_ref)[:, 2]
+    ang = kp[:, 3]
+    tip = kp[:, :2] + kp[:, 2:3] * jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
+    tip_cam = geometry.unproject(K_ref, tip, dist_ref) * z_ref[:, None]
+    tip_world = (tip_cam - t_ref) @ R_ref  # R^T (x - t) for row vectors
+    uv_tip, _ = geometry.project(K, R, t, tip_world)
+    f_ref = 0.5 * (K_ref[0, 0] + K_ref[1, 1])
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    scale = kp[:, 2] * (f / f_ref) * z_ref / jnp.maximum(z, 1e-6)
+    dv = uv_tip - uv
+    angle = jnp.arctan2(dv[:, 1], dv[:, 0])
+    return jnp.concatenate([uv, scale[:, None], angle[:, None]], -1), z

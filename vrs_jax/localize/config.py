@@ -51,6 +51,18 @@ class LocalizeConfig:
     depth_margin: float = 0.2
     narrow_samples: int = 24
     narrow_fine: int = 0
+    # Guided passes (render where the query is): after a successful pose, the retrieved
+    # images' map points are projected with it and each query keypoint is matched only to
+    # points predicted within guided_radius pixels (mutual nearest neighbour, ratio test
+    # against other points), then the pose is refined on those matches and kept only if it
+    # has at least as many inliers. Render mode describes the points' patches rendered FROM
+    # THE ESTIMATED POSE (their keypoint frames moved there) when guided_render, else the
+    # first pass's; real mode its stored descriptors. 0 passes: off. 8 px covers a first
+    # pose a few pixels off; the ratio is the first pass's.
+    guided_passes: int = 0
+    guided_radius: float = 8.0
+    guided_ratio: float = 0.9
+    guided_render: bool = True
     # Rays rendered per jitted chunk (bounds memory: chunk x samples x MLP width floats).
     render_chunk: int = 8192
     pnp: PnPConfig = PnPConfig()
@@ -64,6 +76,8 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.top_k must be >= 1")
         if self.narrow_samples < 1 or self.narrow_fine < 0:
             raise VrsError("LocalizeConfig.narrow_samples must be >= 1 and narrow_fine >= 0")
+        if self.guided_passes < 0 or self.guided_radius <= 0:
+            raise VrsError("LocalizeConfig.guided_passes must be >= 0 and guided_radius > 0")
         if self.query_keypoints < 1:
             raise VrsError("LocalizeConfig.query_keypoints must be >= 1")
         if self.source == "real" and self.patches is not None:

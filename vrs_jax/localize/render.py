@@ -59,36 +59,74 @@ def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Ar
     return rgb.reshape(n_chunks * chunk, 3)[:n]
 
 
-def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
-    """Rendered grey patches [K_max, P, P] of reference image ``i`` with its cluster's NeRF."""
-    egm, ilm = m.egm, m.ilm
+def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Array, R: Array,
+                     t: Array, dist: Array | None, near: Array, far: Array,
+                     patches: PatchConfig, nerf_cfg, cfg: LocalizeConfig) -> Array:
+    """Rendered grey patches [Kp, P, P] of keypoints seen by one camera, with one field.
+
+    Args:
+      kp: [Kp, 4] keypoints (x, y, scale, angle) in that camera; mask: [Kp] bool valid rows
+        (a prefix: rendering stops after the last valid one); depth: [Kp] z-depth of each
+        keypoint's 3D point (the depth-guided interval); K, R, t, dist: the camera;
+      near, far: [] the full sampler's ray interval.
+    """
     P = patches.size
-    kp, mask = egm.keypoints[i], egm.kp_mask[i]
-    field = select_field(ilm.fields, ilm.image_cluster[i])
-    pr = rays_mod.patch_rays(kp, egm.K[i], egm.R[i], egm.t[i], patches, egm.dist[i])
+    pr = rays_mod.patch_rays(kp, K, R, t, patches, dist)
     shape = (kp.shape[0], P, P)
     if cfg.depth_guided:
-        z = rays_mod.keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
-        near, far = rays_mod.narrow_interval(z, cfg.depth_margin, shape)
+        near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
     else:
-        near = jnp.broadcast_to(ilm.near[i], shape)
-        far = jnp.broadcast_to(ilm.far[i], shape)
+        near_r = jnp.broadcast_to(near, shape)
+        far_r = jnp.broadcast_to(far, shape)
     n_kp = jnp.sum(mask)
     if patches.mode == "literal":
         # overlapping axis-aligned patches share whole pixels: render each distinct one once
         pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
-        o, d = geometry.pixel_rays(egm.K[i], egm.R[i], egm.t[i], pixels, egm.dist[i])
+        o, d = geometry.pixel_rays(K, R, t, pixels, dist)
         r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
-        near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near.reshape(-1))
-        far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far.reshape(-1))
-        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, ilm.config, cfg)
+        near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near_r.reshape(-1))
+        far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far_r.reshape(-1))
+        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, nerf_cfg, cfg)
         rgb = rgb_u[inverse.reshape(-1)].reshape(shape + (3,))
     else:
         flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
         rgb = render_flat(field, flat(pr.origins), flat(pr.directions), flat(pr.radii),
-                          flat(near), flat(far), n_kp * P * P, ilm.config, cfg)
+                          flat(near_r), flat(far_r), n_kp * P * P, nerf_cfg, cfg)
         rgb = rgb.reshape(shape + (3,))
     return rgb_to_gray(rgb)
+
+
+def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
+    """Rendered grey patches [K_max, P, P] of reference image ``i`` with its cluster's NeRF."""
+    egm, ilm = m.egm, m.ilm
+    field = select_field(ilm.fields, ilm.image_cluster[i])
+    z = rays_mod.keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
+    return render_keypoints(field, egm.keypoints[i], egm.kp_mask[i], z, egm.K[i], egm.R[i],
+                            egm.t[i], egm.dist[i], ilm.near[i], ilm.far[i], patches,
+                            ilm.config, cfg)
+
+
+def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: PatchConfig,
+                   cfg: LocalizeConfig) -> tuple[Array, Array, Array]:
+    """Reference image ``i``'s map keypoints rendered from another (pinhole) viewpoint.
+
+    Each keypoint is moved into the camera (K [3, 3], R [3, 3], t [3]) through its 3D point
+    (:func:`vrs_jax.features.rays.transfer_keypoints`) and its patch rendered there with the
+    image's cluster NeRF: what that camera would see around the point, in the keypoint's
+    transferred frame. Returns grey patches [K_max, P, P], the moved keypoints [K_max, 4]
+    and their validity [K_max] (linked to a 3D point in front of the camera).
+    """
+    egm, ilm = m.egm, m.ilm
+    field = select_field(ilm.fields, ilm.image_cluster[i])
+    pid = egm.point_idx[i]
+    X = egm.points3d[jnp.maximum(pid, 0)]
+    kp, z = rays_mod.transfer_keypoints(egm.keypoints[i], X, egm.K[i], egm.R[i], egm.t[i],
+                                        egm.dist[i], K, R, t)
+    valid = egm.kp_mask[i] & (pid >= 0) & (z > 1e-6)
+    kp = jnp.where(valid[:, None], kp, jnp.array([0.0, 0.0, 1.0, 0.0], kp.dtype))
+    gray = render_keypoints(field, kp, egm.kp_mask[i], jnp.where(valid, z, 1.0), K, R, t,
+                            None, ilm.near[i], ilm.far[i], patches, ilm.config, cfg)
+    return gray, kp, valid
 
 
 def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:

@@ -10,6 +10,8 @@ Data flow for one query (docs/design.md, section 1)::
     ransac      OpenCV MAGSAC seed                                      R0, t0, inliers
     refinement  optimistix LM on the seed's inliers; fallback to the
                 top-1 reference pose when PnP fails, flagged            LocalizeResult
+    guided      (cfg.guided_passes > 0) map points projected with the pose, rendered
+                from it, matched near their projections, pose refined    LocalizeResult
 
 Every stage is ``fn(map, query, cfg, state) -> dict`` of new state entries; :mod:`run`
 chains them fused under one jit (``localize``) or one jit per stage with timing
@@ -26,14 +28,15 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from vrs_jax import geometry
 from vrs_jax.egm.retrieval import topk
 from vrs_jax.errors import VrsError
 from vrs_jax.features.descriptor import describe as describe_patches
-from vrs_jax.features.matching import match
+from vrs_jax.features.matching import guided_match, match
 from vrs_jax.localize.config import LocalizeConfig
-from vrs_jax.localize.pnp import ransac_pnp, refine_seed
+from vrs_jax.localize.pnp import inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
-from vrs_jax.localize.render import render_reference
+from vrs_jax.localize.render import render_at_pose, render_reference
 from vrs_jax.maps import Map
 
 Array = Any
@@ -141,13 +144,59 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     return {"result": res, "inliers": pose.inliers}
 
 
+def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeResult
+                ) -> LocalizeResult:
+    """One guided pass from ``res``'s pose (a no-op unless it succeeded): candidates are the
+    retrieved images' keypoints with 3D points [k * K_max]; returns the refined result when
+    it has at least as many inliers, else ``res``."""
+    idx = s["idx"]
+    pid = m.egm.point_idx[idx].reshape(-1)  # [C]
+    X = m.egm.points3d[jnp.maximum(pid, 0)]  # [C, 3]
+
+    def run(_):
+        if cfg.source == "render" and cfg.guided_render:
+            patches = cfg.patches or m.config.features.patches
+            gray, _, valid = jax.lax.map(
+                lambda i: render_at_pose(m, i, q.K, res.R, res.t, patches, cfg), idx)
+            desc = describe_patches(gray, m.config.features.descriptor)
+            mask = valid.reshape(-1)
+        else:
+            desc, mask = s["desc"], s["desc_mask"].reshape(-1)
+        uv_r, z = geometry.project(q.K, res.R, res.t, X)
+        mask = mask & (pid >= 0) & (z > 1e-6)
+        j, ok, _ = guided_match(q.points2d, q.desc, q.mask, uv_r,
+                                desc.reshape(pid.shape[0], -1), mask, pid,
+                                cfg.guided_radius, cfg.guided_ratio)
+        Xq = X[j]
+        inl0 = inlier_mask(res.R, res.t, q.points2d, Xq, ok, q.K, cfg.pnp.threshold_px)
+        pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, cfg.pnp)
+        better = pose.success & (pose.n_inliers >= res.n_inliers)
+        pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
+        return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
+                           n_inliers=pick(pose.n_inliers, res.n_inliers),
+                           n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches))
+
+    return jax.lax.cond(res.success, run, lambda _: res, None)
+
+
+def guided(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """``cfg.guided_passes`` guided passes on the refined result (the first pass's inlier
+    mask stays in ``inliers``)."""
+    res = s["result"]
+    for _ in range(cfg.guided_passes):
+        res = guided_pass(m, q, cfg, s, res)
+    return {"result": res}
+
+
 Stage = Callable[[Map, Query, LocalizeConfig, State], State]
 STAGES: tuple[tuple[str, Stage], ...] = (
     ("retrieval", retrieval), ("render", render), ("describe", describe),
-    ("matching", matching), ("ransac", ransac), ("refinement", refinement))
+    ("matching", matching), ("ransac", ransac), ("refinement", refinement),
+    ("guided", guided))
 STAGE_NAMES = tuple(name for name, _ in STAGES)
 
 
 def stages_for(cfg: LocalizeConfig) -> tuple[tuple[str, Stage], ...]:
-    """The stages a config runs (real-patch mode renders nothing)."""
-    return tuple((n, f) for n, f in STAGES if not (n == "render" and cfg.source == "real"))
+    """The stages a config runs (real-patch mode renders nothing; guided only with passes)."""
+    return tuple((n, f) for n, f in STAGES if not (n == "render" and cfg.source == "real")
+                 and not (n == "guided" and cfg.guided_passes == 0))
