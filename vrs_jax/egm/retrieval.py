@@ -1,7 +1,8 @@
 """Global retrieval without downloaded weights: VLAD over our own local descriptors, in JAX.
 
 * Vocabulary: k-means on descriptors sampled from the reference images -- k-means++
-  initialisation (fixed seed) and Lloyd iterations, both in jitted ``lax.fori_loop`` loops.
+  initialisation (fixed seed) and Lloyd iterations (the project's one k-means,
+  :func:`vrs_jax.kmeans.kmeans`, host-side numpy in float64).
 * VLAD (Jegou et al. 2010): each descriptor's residual to its nearest word is summed per
   word; then intra-normalisation (each word's block L2-normalised, Arandjelovic & Zisserman
   2013: damps bursty words), power normalisation (signed square root) and a global L2
@@ -24,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax.errors import VrsError
+from vrs_jax.kmeans import kmeans
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +36,8 @@ class RetrievalConfig:
     # global descriptor (stored as float16, 4 KB per image) stays a minor part of the EGM,
     # large enough to separate the places of a room-sized scene. Jegou et al. use 16-256.
     n_words: int = 16
-    # Lloyd iterations after k-means++; k-means on ~1e4-1e5 descriptors converges in ~20.
+    # At most this many Lloyd iterations after k-means++ (fewer once the assignment is
+    # stable); k-means on ~1e4-1e5 descriptors converges in ~20.
     kmeans_iters: int = 25
     # Descriptors sampled (uniformly, fixed seed) from all reference images to learn words.
     max_train_descriptors: int = 50_000
@@ -73,72 +76,11 @@ class Vocabulary:
         return int(self.centers.shape[0] * self.centers.shape[1])
 
 
-# ----------------------------------------------------------------------------- k-means
-
-
-def _sq_dists(x, c):
+def _sq_dists(x, c):  # jnp, inside the jitted VLAD
     """[M, D], [k, D] -> [M, k] squared Euclidean distances (>= 0)."""
     d2 = (jnp.sum(x * x, -1)[:, None] + jnp.sum(c * c, -1)[None, :]
           - 2.0 * jnp.matmul(x, c.T, precision="highest"))
     return jnp.maximum(d2, 0.0)
-
-
-@partial(jax.jit, static_argnames=("k",))
-def kmeans_pp_init(key, x, k: int):
-    """k-means++ seeding (Arthur & Vassilvitskii 2007).
-
-    Args:
-      key: PRNG key.  x: [M, D] points (M >= 1).  k: number of centres.
-    Returns:
-      [k, D] centres: the first uniform, each next one drawn with probability proportional
-      to the squared distance to the nearest centre chosen so far.
-    """
-    m = x.shape[0]
-    k0, key = jax.random.split(key)
-    first = x[jax.random.randint(k0, (), 0, m)]
-    centers = jnp.zeros((k, x.shape[1]), x.dtype).at[0].set(first)
-    d2 = jnp.sum((x - first) ** 2, -1)
-
-    def body(i, state):
-        centers, d2, key = state
-        key, sub = jax.random.split(key)
-        # all-zero d2 (fewer distinct points than k): fall back to uniform sampling
-        logits = jnp.where(jnp.sum(d2) > 0, jnp.log(jnp.maximum(d2, 1e-30)), 0.0)
-        j = jax.random.categorical(sub, logits)
-        c = x[j]
-        centers = centers.at[i].set(c)
-        d2 = jnp.minimum(d2, jnp.sum((x - c) ** 2, -1))
-        return centers, d2, key
-
-    centers, _, _ = jax.lax.fori_loop(1, k, body, (centers, d2, key))
-    return centers
-
-
-@partial(jax.jit, static_argnames=("iters",))
-def lloyd(x, centers, iters: int):
-    """Lloyd iterations: [M, D] points, [k, D] initial centres -> [k, D] centres.
-
-    An empty cluster keeps its previous centre.
-    """
-    k = centers.shape[0]
-
-    def body(_, c):
-        a = jnp.argmin(_sq_dists(x, c), axis=1)
-        onehot = jax.nn.one_hot(a, k, dtype=x.dtype)  # [M, k]
-        s = jnp.matmul(onehot.T, x, precision="highest")
-        n = onehot.sum(0)[:, None]
-        return jnp.where(n > 0, s / jnp.maximum(n, 1.0), c)
-
-    return jax.lax.fori_loop(0, iters, body, centers)
-
-
-def kmeans(x: np.ndarray, k: int, iters: int = 25, seed: int = 0) -> np.ndarray:
-    """k-means++ then Lloyd: [M, D] -> [k, D] float32 centres (deterministic for a seed)."""
-    x = jnp.asarray(x, jnp.float32)
-    if x.ndim != 2 or x.shape[0] < 1:
-        raise VrsError(f"k-means needs a non-empty [M, D] array, got shape {tuple(x.shape)}")
-    c0 = kmeans_pp_init(jax.random.PRNGKey(seed), x, k)
-    return np.asarray(lloyd(x, c0, iters))
 
 
 # ----------------------------------------------------------------------------- VLAD
@@ -230,8 +172,8 @@ def learn_vocabulary(descs: list[np.ndarray], cfg: RetrievalConfig = RetrievalCo
     rng = np.random.default_rng(cfg.seed)
     if len(allx) > cfg.max_train_descriptors:
         allx = allx[np.sort(rng.choice(len(allx), cfg.max_train_descriptors, replace=False))]
-    centers = kmeans(allx, cfg.n_words, cfg.kmeans_iters, cfg.seed)
-    vocab = Vocabulary(centers=jnp.asarray(centers), power=cfg.power)
+    centers, _ = kmeans(allx, cfg.n_words, seed=cfg.seed, iters=cfg.kmeans_iters)
+    vocab = Vocabulary(centers=jnp.asarray(centers, jnp.float32), power=cfg.power)
     if cfg.pca_dim is not None:
         v = global_descriptors(descs, None, vocab)
         dim = min(cfg.pca_dim, len(v) - 1)
