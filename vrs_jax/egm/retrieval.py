@@ -26,6 +26,7 @@ import numpy as np
 
 from vrs_jax.errors import VrsError
 from vrs_jax.kmeans import kmeans
+from vrs_jax.padding import padded_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,10 +124,6 @@ def _global_batch(desc, mask, vocab: Vocabulary):
     return apply_pca(v, vocab)
 
 
-def _bucket(k: int) -> int:
-    return max(16, 1 << max(0, int(k) - 1).bit_length())
-
-
 def global_descriptor(desc: np.ndarray, mask: np.ndarray | None, vocab: Vocabulary
                       ) -> np.ndarray:
     """Host helper: one image's global descriptor [G] float32 (references and queries alike).
@@ -143,7 +140,7 @@ def global_descriptors(descs: list[np.ndarray], masks: list[np.ndarray] | None,
                        vocab: Vocabulary) -> np.ndarray:
     """Global descriptors [N, G] float32 of N images (padded to one shape, one jitted call)."""
     d = int(vocab.centers.shape[1])
-    kmax = _bucket(max([len(x) for x in descs] + [1]))
+    kmax = padded_size(max([len(x) for x in descs] + [1]))
     n = len(descs)
     D = np.zeros((n, kmax, d), np.float32)
     M = np.zeros((n, kmax), bool)

@@ -31,6 +31,7 @@ from vrs_jax.data.readers.colmap import colmap_camera, quiet_pycolmap
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.features.matching import match_jit
+from vrs_jax.padding import padded_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,12 +121,6 @@ def _pad(desc: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return out, mask
 
 
-def pad_size(counts: list[int]) -> int:
-    """One padded keypoint count for all images: the next power of two >= max (>= 16)."""
-    m = max([16, *counts])
-    return 1 << (m - 1).bit_length()
-
-
 def match_pair(desc_i: np.ndarray, desc_j: np.ndarray, cfg: TriangulationConfig,
                pad: int | None = None) -> np.ndarray:
     """Mutual-NN + ratio matches of two images: [m, 2] int64 (keypoint in i, keypoint in j).
@@ -135,7 +130,7 @@ def match_pair(desc_i: np.ndarray, desc_j: np.ndarray, cfg: TriangulationConfig,
     """
     if len(desc_i) == 0 or len(desc_j) == 0:
         return np.zeros((0, 2), np.int64)
-    n = pad or pad_size([len(desc_i), len(desc_j)])
+    n = pad or padded_size(max(len(desc_i), len(desc_j)))
     di, mi = _pad(desc_i, n)
     dj, mj = _pad(desc_j, n)
     idx, valid, _ = match_jit(jnp.asarray(di), jnp.asarray(mi), jnp.asarray(dj),
@@ -199,7 +194,7 @@ def match_pairs(scene: Scene, keypoints: list[np.ndarray], descriptors: list[np.
       matches: {(i, j): [m, 2] int64} verified matches (pairs with fewer than
         ``cfg.min_pair_matches`` dropped); stats: counters.
     """
-    pad = pad_size([len(d) for d in descriptors])
+    pad = padded_size(max([len(d) for d in descriptors] + [0]))
     out: dict[tuple[int, int], np.ndarray] = {}
     n_raw = n_ver = n_empty = 0
     for i, j in np.asarray(pairs, np.int64).reshape(-1, 2):
