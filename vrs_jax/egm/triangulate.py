@@ -366,25 +366,26 @@ def _collect(scene: Scene, keypoints: list[np.ndarray], rec: pycolmap.Reconstruc
     ids = sorted(rec.point3D_ids())
     if not ids:
         return _empty(len(scene), keypoints, stats)
-    X = np.array([rec.point3D(p).xyz for p in ids], np.float64).reshape(-1, 3)
-    obs_image, obs_kp, obs_point = [], [], []
-    for m, p in enumerate(ids):
-        for el in rec.point3D(p).track.elements:
-            obs_image.append(el.image_id - 1)
-            obs_kp.append(el.point2D_idx)
-            obs_point.append(m)
-    obs_image = np.asarray(obs_image, np.int64)
-    obs_kp = np.asarray(obs_kp, np.int64)
-    obs_point = np.asarray(obs_point, np.int64)
+    # pycolmap's points and tracks are objects: one pass reads them (the only per-observation
+    # Python here); everything after works on the flat observation arrays.
+    points = [rec.points3D[p] for p in ids]
+    X = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+    tracks = [p.track.elements for p in points]
+    obs_image = np.fromiter((el.image_id for els in tracks for el in els), np.int64) - 1
+    obs_kp = np.fromiter((el.point2D_idx for els in tracks for el in els), np.int64)
+    obs_point = np.repeat(np.arange(len(ids), dtype=np.int64), [len(e) for e in tracks])
     # Reprojection errors with our own projection (an independent check of pycolmap's).
+    # One vectorised projection per observing image (loop over images, not observations).
     obs_err = np.zeros(len(obs_image))
-    point_of_kp = [np.full(len(k), -1, np.int64) for k in keypoints]
     for i in np.unique(obs_image):
         sel = obs_image == i
         uv, _ = geometry.project(scene.K[i], scene.R[i], scene.t[i], X[obs_point[sel]],
                                  scene.dist[i])
         obs_err[sel] = np.linalg.norm(uv - keypoints[i][obs_kp[sel], :2], axis=-1)
-        point_of_kp[i][obs_kp[sel]] = obs_point[sel]
+    lengths = [len(k) for k in keypoints]
+    flat = np.full(sum(lengths), -1, np.int64)  # point of every keypoint of every image
+    flat[np.cumsum([0, *lengths])[obs_image] + obs_kp] = obs_point
+    point_of_kp = _split(flat, lengths)
     m = len(X)
     track_len = np.bincount(obs_point, minlength=m)
     errors = np.bincount(obs_point, weights=obs_err, minlength=m) / np.maximum(track_len, 1)
@@ -393,18 +394,28 @@ def _collect(scene: Scene, keypoints: list[np.ndarray], rec: pycolmap.Reconstruc
                          obs_point, obs_err, point_of_kp, stats)
 
 
+def _concat(rows: list[np.ndarray]) -> np.ndarray:
+    """Per-image int arrays [K_i] -> [sum K_i] int64."""
+    return np.concatenate([np.asarray(r, np.int64).reshape(-1) for r in rows]
+                          + [np.zeros(0, np.int64)])
+
+
+def _split(flat: np.ndarray, lengths: list[int]) -> list[np.ndarray]:
+    """Inverse of :func:`_concat`: [sum K_i] -> [N] arrays [K_i] (copies)."""
+    return [a.copy() for a in np.split(flat, np.cumsum(lengths)[:-1])] if lengths else []
+
+
 def subset_points(tr: Triangulation, keep: np.ndarray) -> Triangulation:
     """The triangulation restricted to the points where ``keep`` [M] is True (reindexed)."""
     keep = np.asarray(keep, bool)
     new_index = np.cumsum(keep) - 1
     sel = keep[tr.obs_point]
-    point_of_kp = []
-    for p in tr.point_of_kp:
-        q = np.full(len(p), -1, np.int64)
-        ok = p >= 0
-        ok[ok] = keep[p[ok]]
-        q[ok] = new_index[p[ok]]
-        point_of_kp.append(q)
+    flat = _concat(tr.point_of_kp)
+    ok = flat >= 0
+    ok[ok] = keep[flat[ok]]
+    flat = np.where(ok, flat, -1)
+    flat[ok] = new_index[flat[ok]]
+    point_of_kp = _split(flat, [len(p) for p in tr.point_of_kp])
     return Triangulation(tr.points3d[keep], tr.errors[keep], tr.track_lengths[keep],
                          tr.tri_angles[keep], tr.obs_image[sel], tr.obs_kp[sel],
                          new_index[tr.obs_point[sel]], tr.obs_errors[sel], point_of_kp,
