@@ -45,7 +45,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks import common  # noqa: E402
 from vrs_jax import geometry  # noqa: E402
-from vrs_jax.data.images import read_gray, read_image  # noqa: E402
+from vrs_jax.data.images import luma, read_gray, read_image  # noqa: E402
 from vrs_jax.errors import VrsError, cli_main  # noqa: E402
 from vrs_jax.eval import metrics  # noqa: E402
 from vrs_jax.features.patches import extract_patches, patch_grid  # noqa: E402
@@ -169,7 +169,7 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     positions, _ = patch_grid(kp_ref, patch_cfg)
     ref_real = _real_image(ctx.scene, _scene_index(ctx.scene, egm.names[i]))
     if mode == "real":  # the baseline's patches: read from the real reference image
-        gray_ref = ref_real @ np.asarray([0.299, 0.587, 0.114], np.float32)
+        gray_ref = luma(ref_real)
         patches = np.asarray(extract_patches(gray_ref, kp_ref, patch_cfg))
     else:
         patches = st["gray"][c]

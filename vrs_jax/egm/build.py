@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 from tqdm.auto import tqdm
 
-from vrs_jax.data.images import read_image
+from vrs_jax.data.images import read_gray
 from vrs_jax.data.scene import Scene
 from vrs_jax.egm import map as egm_map
 from vrs_jax.egm.map import EGM, make_egm
@@ -38,7 +38,6 @@ from vrs_jax.egm.triangulate import (
 )
 from vrs_jax.errors import VrsError
 from vrs_jax.features import extract as feat
-from vrs_jax.features.descriptor import LUMA
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,9 +92,8 @@ def extract_reference_features(scene: Scene, cfg: feat.FeatureConfig, progress: 
     for i in tqdm(range(len(scene)), desc="features", unit="img", disable=not progress):
         # RGBA images (NeRF synthetic) are composited on the scene's background, as the
         # NeRF sees them; grey = the descriptor's luma, as for rendered patches
-        rgb = read_image(scene.image_paths[i], background=scene.background,
-                         size=tuple(int(s) for s in scene.sizes[i]))
-        gray = np.ascontiguousarray(rgb @ np.asarray(LUMA, np.float32))
+        gray = read_gray(scene.image_paths[i], size=tuple(int(s) for s in scene.sizes[i]),
+                         background=scene.background)
         kp, d = feat.extract_features(gray, cfg)
         kps.append(kp)
         descs.append(d)
