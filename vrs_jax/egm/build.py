@@ -38,6 +38,7 @@ from vrs_jax.egm.triangulate import (
 )
 from vrs_jax.errors import VrsError
 from vrs_jax.features import extract as feat
+from vrs_jax.features.keypoints import grid_round_robin
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,17 +124,7 @@ def select_keypoints(kp: np.ndarray, point_of_kp: np.ndarray, track_len: np.ndar
         return cand
     p = point_of_kp[cand]
     order = cand[np.lexsort((errors[p], -track_len[p]))]  # best first
-    gx, gy = grid
-    w, h = float(size[0]), float(size[1])
-    cx = np.clip((kp[order, 0] / w * gx).astype(np.int64), 0, gx - 1)
-    cy = np.clip((kp[order, 1] / h * gy).astype(np.int64), 0, gy - 1)
-    cell = cy * gx + cx
-    # rank of each keypoint within its cell, in the order above
-    srt = np.argsort(cell, kind="stable")
-    first = np.searchsorted(cell[srt], cell[srt])
-    rank = np.empty(len(order), np.int64)
-    rank[srt] = np.arange(len(order)) - first
-    pri = np.lexsort((np.arange(len(order)), rank))
+    pri = grid_round_robin(kp[order, :2], float(size[0]), float(size[1]), grid)
     return order[pri[:k_max]]
 
 
