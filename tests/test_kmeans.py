@@ -110,3 +110,18 @@ def test_bad_input_is_one_line():
         KM.kmeans(np.zeros((0, 3)), 1)
     with pytest.raises(VrsError, match="cannot make 4 clusters from 3 points"):
         KM.kmeans(np.zeros((3, 2)), 4)
+
+
+def test_matrix_product_distances_agree_with_exact_ones():
+    rng = np.random.default_rng(2)
+    x, c = rng.normal(size=(400, 128)), rng.normal(size=(16, 128))
+    np.testing.assert_allclose(KM.sq_dists(x, c, exact=False), KM.sq_dists(x, c),
+                               rtol=1e-12, atol=1e-10)
+    np.testing.assert_array_equal(KM.sq_dists(x, x[:3], exact=False)[np.arange(3), np.arange(3)]
+                                  >= 0, True)
+    # the same clustering of well-separated data either way
+    true = rng.normal(size=(5, 128)) * 5
+    pts = np.concatenate([t + 0.1 * rng.normal(size=(50, 128)) for t in true])
+    _, la = KM.kmeans(pts, 5, seed=3, exact=False)
+    _, lb = KM.kmeans(pts, 5, seed=3)
+    np.testing.assert_array_equal(la, lb)

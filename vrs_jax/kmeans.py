@@ -3,9 +3,11 @@
 The one k-means of the project, below every stage: the EGM's retrieval vocabulary
 (:func:`vrs_jax.egm.retrieval.learn_vocabulary`, descriptors [M, 128]) and the NeRF scene
 division (:func:`vrs_jax.nerf.clusters.cluster_cameras`, camera centres [N, 3]) both call
-:func:`kmeans`. Computed in float64; distances are exact sums of squared differences (no
-``|x|^2 + |c|^2 - 2 x.c`` cancellation), evaluated in row blocks so that [M, k, D]
-never has to fit in memory at once.
+:func:`kmeans`. Computed in float64. Lloyd's assignment step takes either exact sums of
+squared differences (``exact=True``, evaluated in row blocks so that [M, k, D] never has to
+fit in memory at once; the camera clustering) or ``|x|^2 + |c|^2 - 2 x.c`` with one matrix
+product (``exact=False``: ~20x faster for 128-dimensional descriptors; float64 keeps its
+cancellation far below any distance that decides an assignment; the vocabulary).
 """
 
 from __future__ import annotations
@@ -18,8 +20,16 @@ from vrs_jax.errors import VrsError
 _BLOCK_ELEMENTS = 1 << 24
 
 
-def sq_dists(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """Squared Euclidean distances [N, k] of points [N, D] to centres [k, D] (float64)."""
+def sq_dists(points: np.ndarray, centers: np.ndarray, exact: bool = True) -> np.ndarray:
+    """Squared Euclidean distances [N, k] of float64 points [N, D] to centres [k, D].
+
+    exact: sums of squared differences; else the expansion through one matrix product
+    (clamped at 0).
+    """
+    if not exact:
+        d2 = (np.sum(points * points, axis=1)[:, None] + np.sum(centers * centers, axis=1)[None]
+              - 2.0 * (points @ centers.T))
+        return np.maximum(d2, 0.0)
     n, k = len(points), len(centers)
     rows = max(1, _BLOCK_ELEMENTS // max(1, k * points.shape[1]))
     out = np.empty((n, k), np.float64)
@@ -49,7 +59,7 @@ def kmeans_pp_init(points: np.ndarray, k: int, rng: np.random.Generator) -> np.n
     return np.stack(centers)
 
 
-def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 100
+def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 100, exact: bool = True
            ) -> tuple[np.ndarray, np.ndarray]:
     """Lloyd's K-means with k-means++ seeding.
 
@@ -61,6 +71,8 @@ def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 100
       k: number of clusters (1 <= k <= N).
       seed: seed of the numpy generator used for the seeding.
       iters: maximum number of Lloyd iterations.
+      exact: assignment distances as exact differences, else by the matrix-product
+        expansion (see :func:`sq_dists`).
     Returns:
       centres [k, D] float64 and labels [N] int64. A cluster that ends up empty keeps its
       centre and has no label (callers check).
@@ -76,7 +88,7 @@ def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 100
     centers = kmeans_pp_init(points, k, rng)
     labels = np.zeros(len(points), dtype=np.int64)
     for it in range(iters):
-        new_labels = np.argmin(sq_dists(points, centers), axis=1)
+        new_labels = np.argmin(sq_dists(points, centers, exact), axis=1)
         if it > 0 and np.array_equal(new_labels, labels):
             break
         labels = new_labels

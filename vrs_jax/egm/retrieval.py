@@ -2,7 +2,7 @@
 
 * Vocabulary: k-means on descriptors sampled from the reference images -- k-means++
   initialisation (fixed seed) and Lloyd iterations (the project's one k-means,
-  :func:`vrs_jax.kmeans.kmeans`, host-side numpy in float64).
+  :func:`vrs_jax.kmeans.kmeans`, host-side numpy in float64, distances by one matrix product).
 * VLAD (Jegou et al. 2010): each descriptor's residual to its nearest word is summed per
   word; then intra-normalisation (each word's block L2-normalised, Arandjelovic & Zisserman
   2013: damps bursty words), power normalisation (signed square root) and a global L2
@@ -169,7 +169,7 @@ def learn_vocabulary(descs: list[np.ndarray], cfg: RetrievalConfig = RetrievalCo
     rng = np.random.default_rng(cfg.seed)
     if len(allx) > cfg.max_train_descriptors:
         allx = allx[np.sort(rng.choice(len(allx), cfg.max_train_descriptors, replace=False))]
-    centers, _ = kmeans(allx, cfg.n_words, seed=cfg.seed, iters=cfg.kmeans_iters)
+    centers, _ = kmeans(allx, cfg.n_words, seed=cfg.seed, iters=cfg.kmeans_iters, exact=False)
     vocab = Vocabulary(centers=jnp.asarray(centers, jnp.float32), power=cfg.power)
     if cfg.pca_dim is not None:
         v = global_descriptors(descs, None, vocab)
