@@ -1,8 +1,8 @@
 """Global retrieval without downloaded weights: VLAD over our own local descriptors, in JAX.
 
 * Vocabulary: k-means on descriptors sampled from the reference images -- k-means++
-  initialisation (fixed seed) and Lloyd iterations (the project's one k-means,
-  :func:`vrs_jax.kmeans.kmeans`, host-side numpy in float64, distances by one matrix product).
+  initialisation (fixed seed) and Lloyd iterations, both in jitted ``lax.fori_loop`` loops
+  (the project's one k-means, :func:`vrs_jax.kmeans.kmeans`).
 * VLAD (Jegou et al. 2010): each descriptor's residual to its nearest word is summed per
   word; then intra-normalisation (each word's block L2-normalised, Arandjelovic & Zisserman
   2013: damps bursty words), power normalisation (signed square root) and a global L2
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax.errors import VrsError
-from vrs_jax.kmeans import kmeans
+from vrs_jax.kmeans import kmeans, sq_dists
 from vrs_jax.padding import padded_size
 
 
@@ -37,8 +37,7 @@ class RetrievalConfig:
     # global descriptor (stored as float16, 4 KB per image) stays a minor part of the EGM,
     # large enough to separate the places of a room-sized scene. Jegou et al. use 16-256.
     n_words: int = 16
-    # At most this many Lloyd iterations after k-means++ (fewer once the assignment is
-    # stable); k-means on ~1e4-1e5 descriptors converges in ~20.
+    # Lloyd iterations after k-means++; k-means on ~1e4-1e5 descriptors converges in ~20.
     kmeans_iters: int = 25
     # Descriptors sampled (uniformly, fixed seed) from all reference images to learn words.
     max_train_descriptors: int = 50_000
@@ -77,13 +76,6 @@ class Vocabulary:
         return int(self.centers.shape[0] * self.centers.shape[1])
 
 
-def _sq_dists(x, c):  # jnp, inside the jitted VLAD
-    """[M, D], [k, D] -> [M, k] squared Euclidean distances (>= 0)."""
-    d2 = (jnp.sum(x * x, -1)[:, None] + jnp.sum(c * c, -1)[None, :]
-          - 2.0 * jnp.matmul(x, c.T, precision="highest"))
-    return jnp.maximum(d2, 0.0)
-
-
 # ----------------------------------------------------------------------------- VLAD
 
 
@@ -99,7 +91,7 @@ def vlad(desc, mask, centers, power: float = 0.5):
     desc = jnp.asarray(desc, jnp.float32)
     centers = jnp.asarray(centers, jnp.float32)
     k = centers.shape[0]
-    a = jnp.argmin(_sq_dists(desc, centers), axis=1)
+    a = jnp.argmin(sq_dists(desc, centers), axis=1)
     w = jax.nn.one_hot(a, k, dtype=jnp.float32) * jnp.asarray(mask, jnp.float32)[:, None]
     # sum over assigned descriptors of (x - c): W^T X - (sum W) c
     v = jnp.matmul(w.T, desc, precision="highest") - w.sum(0)[:, None] * centers  # [k, D]
@@ -169,8 +161,8 @@ def learn_vocabulary(descs: list[np.ndarray], cfg: RetrievalConfig = RetrievalCo
     rng = np.random.default_rng(cfg.seed)
     if len(allx) > cfg.max_train_descriptors:
         allx = allx[np.sort(rng.choice(len(allx), cfg.max_train_descriptors, replace=False))]
-    centers, _ = kmeans(allx, cfg.n_words, seed=cfg.seed, iters=cfg.kmeans_iters, exact=False)
-    vocab = Vocabulary(centers=jnp.asarray(centers, jnp.float32), power=cfg.power)
+    centers = kmeans(allx, cfg.n_words, cfg.kmeans_iters, cfg.seed)
+    vocab = Vocabulary(centers=jnp.asarray(centers), power=cfg.power)
     if cfg.pca_dim is not None:
         v = global_descriptors(descs, None, vocab)
         dim = min(cfg.pca_dim, len(v) - 1)

@@ -1,8 +1,9 @@
 """Scene division: K-means on reference camera centres, with shared border images.
 
-Small and host-side (numpy): N is the number of reference images (hundreds to a few
-thousands). The K-means is the project's one (:func:`vrs_jax.kmeans.kmeans`), deterministic
-for a fixed seed.
+N is the number of reference images (hundreds to a few thousands). The K-means is the
+project's one (:func:`vrs_jax.kmeans.kmeans`: k-means++ and Lloyd in JAX, deterministic for a
+fixed seed), run on the centred camera positions so that float32 keeps its precision in
+world coordinates far from the origin; the rest is host-side numpy in float64.
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ import numpy as np
 
 from vrs_jax.errors import VrsError
 from vrs_jax.kmeans import kmeans
+
+# Lloyd iterations: a few hundred camera positions converge in well under 100.
+KMEANS_ITERS = 100
 
 
 class Clustering(NamedTuple):
@@ -42,11 +46,15 @@ def cluster_cameras(camera_centers: np.ndarray, n_clusters: int, overlap: float 
       than clusters).
     """
     x = np.asarray(camera_centers, dtype=np.float64)
-    if x.ndim == 2 and len(x) and not 1 <= n_clusters <= len(x):
+    if x.ndim != 2 or len(x) == 0:
+        raise VrsError(f"camera centres must be [N, 3] with N >= 1, got shape {x.shape}")
+    if not 1 <= n_clusters <= len(x):
         raise VrsError(f"cannot make {n_clusters} clusters from {len(x)} reference images")
-    centers, labels = kmeans(x, n_clusters, seed=seed)
-    check_nonempty(np.eye(n_clusters, dtype=bool)[:, labels])
+    mean = x.mean(axis=0)
+    centers = kmeans(x - mean, n_clusters, iters=KMEANS_ITERS, seed=seed) + mean
     dist = np.sqrt(np.sum((x[:, None, :] - centers[None]) ** 2, axis=-1))  # [N, C]
+    labels = np.argmin(dist, axis=1)  # nearest centre
+    check_nonempty(np.eye(n_clusters, dtype=bool)[:, labels])
     own = dist[np.arange(len(x)), labels]
     membership = (dist <= (1.0 + overlap) * own[:, None]).T  # [C, N]
     membership[labels, np.arange(len(x))] = True
