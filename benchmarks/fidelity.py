@@ -169,12 +169,10 @@ def float16_bytes(ilm, tmp: Path) -> int:
 
 def real_gray(scene, i: int) -> np.ndarray:
     """Grey reference image [H, W] as the EGM build reads it (background composite, luma)."""
-    from vrs_jax.data.images import read_image
-    from vrs_jax.features.descriptor import LUMA
+    from vrs_jax.data.images import read_gray
 
-    rgb = read_image(scene.image_paths[i], background=scene.background,
-                     size=tuple(int(s) for s in scene.sizes[i]))
-    return np.ascontiguousarray(rgb @ np.asarray(LUMA, np.float32))
+    return read_gray(scene.image_paths[i], size=tuple(int(s) for s in scene.sizes[i]),
+                     background=scene.background)
 
 
 def make_evaluator(lcfg, features):

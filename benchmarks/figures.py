@@ -44,8 +44,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks import common  # noqa: E402
-from vrs_jax import geometry  # noqa: E402
-from vrs_jax.data.images import read_gray, read_image  # noqa: E402
+from vrs_jax import fileio, geometry  # noqa: E402
+from vrs_jax.data.images import luma, read_gray, read_image  # noqa: E402
 from vrs_jax.errors import VrsError, cli_main  # noqa: E402
 from vrs_jax.eval import metrics  # noqa: E402
 from vrs_jax.features.patches import extract_patches, patch_grid  # noqa: E402
@@ -85,11 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def save(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
+    """Write ``fig`` as PNG to ``path`` atomically (vrs_jax.fileio.write_atomic)."""
+    fileio.write_atomic(path, lambda f: fig.savefig(f, format="png", dpi=DPI,
+                                                    bbox_inches="tight"))
     plt.close(fig)
-    tmp.replace(path)
     return path
 
 
@@ -169,7 +168,7 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     positions, _ = patch_grid(kp_ref, patch_cfg)
     ref_real = _real_image(ctx.scene, _scene_index(ctx.scene, egm.names[i]))
     if mode == "real":  # the baseline's patches: read from the real reference image
-        gray_ref = ref_real @ np.asarray([0.299, 0.587, 0.114], np.float32)
+        gray_ref = luma(ref_real)
         patches = np.asarray(extract_patches(gray_ref, kp_ref, patch_cfg))
     else:
         patches = st["gray"][c]

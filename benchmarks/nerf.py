@@ -19,13 +19,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import environment
+from vrs_jax import fileio
 from vrs_jax.errors import VrsError, cli_main
 
 
@@ -171,11 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"benchmark": "nerf", "data": str(args.data), "format": args.fmt,
            "minutes": args.minutes, "hold_out_every": args.hold_out, "near": args.near,
            "far": args.far, "machine": info, "results": results}
-    p = Path(args.json)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(out, indent=1, default=float))
-    os.replace(tmp, p)
+    p = fileio.write_text(args.json, json.dumps(out, indent=1, default=float))
     print(f"wrote {p}")
     return 0
 

@@ -145,3 +145,45 @@ def test_select_keypoints_prefers_long_tracks_and_spreads():
     sel = select_keypoints(kp, point_of_kp, track, err, (100, 100), 10, (1, 1))
     assert np.all(sel < 100)  # no spreading: longest tracks win
     assert select_keypoints(kp, np.full(120, -1), track, err, (100, 100), 10, (2, 2)).size == 0
+
+
+def _old_padded_rows(keypoints, point_idx, local_desc, n, k_max):
+    """Frozen copy of make_egm's per-image padding loop before it was vectorised."""
+    counts = [min(len(k), k_max) if k_max is not None else len(k) for k in keypoints]
+    km = int(k_max if k_max is not None else max(counts + [0]))
+    kp = np.zeros((n, km, 4), np.float32)
+    kp[..., 2] = 1.0
+    pi = np.full((n, km), -1, np.int32)
+    mask = np.zeros((n, km), bool)
+    ld = None
+    if local_desc is not None:
+        d = max([x.shape[-1] for x in local_desc if x.ndim == 2] + [0])
+        ld = np.zeros((n, km, d), np.float32)
+    for i in range(n):
+        c = counts[i]
+        kp[i, :c] = np.asarray(keypoints[i], np.float32)[:c]
+        pi[i, :c] = np.asarray(point_idx[i], np.int32)[:c]
+        mask[i, :c] = True
+        if ld is not None:
+            ld[i, :c] = np.asarray(local_desc[i], np.float32)[:c]
+    return kp, pi, mask, ld
+
+
+@pytest.mark.parametrize("k_max", [None, 0, 5, 16, 40])
+def test_make_egm_padding_equals_the_former_loop(k_max):
+    rng = np.random.default_rng(7)
+    lengths = [12, 0, 30, 1, 16, 0]  # empty rows, rows shorter and longer than k_max
+    n = len(lengths)
+    kps = [rng.normal(size=(c, 4)) for c in lengths]  # float64 in: cast as before
+    pis = [rng.integers(0, 50, c) for c in lengths]
+    lds = [rng.normal(size=(c, 8)).astype(np.float32) for c in lengths]
+    vocab = Vocabulary(centers=jnp.zeros((2, 8), jnp.float32))
+    egm = M.make_egm(rng.normal(size=(50, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)),
+                     np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 5)), np.ones((n, 2)), kps, pis,
+                     np.zeros((n, 4)), vocab, [f"im{i}" for i in range(n)], k_max=k_max,
+                     local_desc=lds)
+    for got, want in zip((egm.keypoints, egm.point_idx, egm.kp_mask, egm.local_desc),
+                         _old_padded_rows(kps, pis, lds, n, k_max), strict=True):
+        got = np.asarray(got)
+        assert got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(got, want)

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from vrs_jax.egm import retrieval as RT
 from vrs_jax.errors import VrsError
+from vrs_jax.kmeans import kmeans
 
 
 def _unit(x):
@@ -29,31 +28,15 @@ def _vlad_numpy(desc, centers, power=0.5):
     return v / np.linalg.norm(v)
 
 
-def test_kmeans_recovers_separated_clusters():
+def test_vocabulary_is_the_shared_kmeans_of_the_descriptors():
     rng = np.random.default_rng(0)
     true = rng.normal(size=(6, 8)) * 5
-    x = np.concatenate([c + 0.1 * rng.normal(size=(100, 8)) for c in true])
-    c = RT.kmeans(x, 6, iters=10, seed=0)
-    d = np.linalg.norm(true[:, None] - c[None], axis=-1)
-    assert np.all(d.min(1) < 0.1)  # every true centre found
-    # deterministic for a seed
-    np.testing.assert_array_equal(c, RT.kmeans(x, 6, iters=10, seed=0))
-
-
-def test_lloyd_step_matches_numpy():
-    rng = np.random.default_rng(1)
-    x = rng.normal(size=(300, 4)).astype(np.float32)
-    c0 = x[:5].copy()
-    c = np.asarray(RT.lloyd(jnp.asarray(x), jnp.asarray(c0), 1))
-    a = np.argmin(((x[:, None] - c0[None]) ** 2).sum(-1), axis=1)
-    ref = np.stack([x[a == k].mean(0) for k in range(5)])
-    np.testing.assert_allclose(c, ref, atol=1e-5)
-
-
-def test_kmeans_pp_picks_distinct_points():
-    x = np.repeat(np.eye(4, dtype=np.float32), 10, axis=0)  # 4 distinct points, 10 copies each
-    c = np.asarray(RT.kmeans_pp_init(jax.random.PRNGKey(0), jnp.asarray(x), 4))
-    assert len({tuple(r) for r in c}) == 4
+    descs = [np.concatenate([c + 0.1 * rng.normal(size=(20, 8)) for c in true]).astype(
+        np.float32) for _ in range(3)]
+    vocab = RT.learn_vocabulary(descs, RT.RetrievalConfig(n_words=6, kmeans_iters=10))
+    c = kmeans(np.concatenate(descs), 6, iters=10, seed=0)
+    np.testing.assert_array_equal(np.asarray(vocab.centers), c)
+    assert np.all(np.linalg.norm(true[:, None] - c[None], axis=-1).min(1) < 0.1)
 
 
 def test_vlad_matches_numpy_and_ignores_padding():

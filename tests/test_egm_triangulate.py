@@ -270,3 +270,81 @@ def test_build_reconstruction_poses_roundtrip():
                                    atol=1e-12)
         np.testing.assert_allclose(im.cam_from_world().translation, scene.t[i], atol=1e-12)
         assert isinstance(im, pycolmap.Image) and im.num_points2D() == 5
+
+
+# ----------------------------------------------- vectorised collection: same result as before
+
+
+def _old_collect(scene, keypoints, rec, stats):
+    """Frozen copy of T._collect before it was vectorised (per-observation loop)."""
+    ids = sorted(rec.point3D_ids())
+    X = np.array([rec.point3D(p).xyz for p in ids], np.float64).reshape(-1, 3)
+    obs_image, obs_kp, obs_point = [], [], []
+    for m, p in enumerate(ids):
+        for el in rec.point3D(p).track.elements:
+            obs_image.append(el.image_id - 1)
+            obs_kp.append(el.point2D_idx)
+            obs_point.append(m)
+    obs_image = np.asarray(obs_image, np.int64)
+    obs_kp = np.asarray(obs_kp, np.int64)
+    obs_point = np.asarray(obs_point, np.int64)
+    obs_err = np.zeros(len(obs_image))
+    point_of_kp = [np.full(len(k), -1, np.int64) for k in keypoints]
+    for i in np.unique(obs_image):
+        sel = obs_image == i
+        uv, _ = g.project(scene.K[i], scene.R[i], scene.t[i], X[obs_point[sel]], scene.dist[i])
+        obs_err[sel] = np.linalg.norm(uv - keypoints[i][obs_kp[sel], :2], axis=-1)
+        point_of_kp[i][obs_kp[sel]] = obs_point[sel]
+    m = len(X)
+    track_len = np.bincount(obs_point, minlength=m)
+    errors = np.bincount(obs_point, weights=obs_err, minlength=m) / np.maximum(track_len, 1)
+    tri_angles = T._max_tri_angles(scene.centers[obs_image], X[obs_point], obs_point, m)
+    return T.Triangulation(X, errors, track_len.astype(np.int64), tri_angles, obs_image,
+                           obs_kp, obs_point, obs_err, point_of_kp, stats)
+
+
+def _old_subset_point_of_kp(tr, keep):
+    """Frozen copy of subset_points' per-image reindexing before it was vectorised."""
+    new_index = np.cumsum(keep) - 1
+    out = []
+    for p in tr.point_of_kp:
+        q = np.full(len(p), -1, np.int64)
+        ok = p >= 0
+        ok[ok] = keep[p[ok]]
+        q[ok] = new_index[p[ok]]
+        out.append(q)
+    return out
+
+
+def _assert_same(a: T.Triangulation, b: T.Triangulation):
+    for f in ("points3d", "errors", "track_lengths", "tri_angles", "obs_image", "obs_kp",
+              "obs_point", "obs_errors"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.dtype == y.dtype, f
+        np.testing.assert_array_equal(x, y, err_msg=f)
+    for x, y in zip(a.point_of_kp, b.point_of_kp, strict=True):
+        assert x.dtype == y.dtype
+        np.testing.assert_array_equal(x, y)
+
+
+def test_vectorised_collect_and_subset_equal_the_former_loops():
+    scene = _scene(5, np.array([-0.1, 0.02, 1e-3, 0.0, 0.01]))
+    X = _points(120)
+    kps = _observe(scene, X, noise=0.5)
+    rng = np.random.default_rng(5)
+    # tracks of mixed lengths (some pairs missing), a few wrong matches, one empty image
+    matches = {(i, j): np.stack([rng.permutation(120)[:90]] * 2, 1)
+               for i, j in itertools.combinations(range(4), 2)}
+    matches[(0, 1)][:5, 1] = rng.permutation(120)[:5]
+    kps[4] = kps[4][:0]
+    rec = T.build_reconstruction(scene, [k[:, :2] for k in kps])
+    T._run_triangulator(rec, kps, matches, T.TriangulationConfig(), False)
+    new, old = T._collect(scene, kps, rec, {}), _old_collect(scene, kps, rec, {})
+    assert new.num_points > 50 and len(set(new.track_lengths.tolist())) > 1
+    _assert_same(new, old)
+    for keep in (np.arange(new.num_points) % 3 != 1, np.zeros(new.num_points, bool),
+                 np.ones(new.num_points, bool)):
+        sub = T.subset_points(new, keep)
+        for x, y in zip(sub.point_of_kp, _old_subset_point_of_kp(new, keep), strict=True):
+            assert x.dtype == y.dtype
+            np.testing.assert_array_equal(x, y)

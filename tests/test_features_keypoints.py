@@ -184,3 +184,29 @@ def test_bad_images_raise_vrs_error(bad):
 def test_bad_config_raises(kw):
     with pytest.raises(VrsError):
         KeypointConfig(**kw)
+
+
+def test_grid_round_robin_equals_the_former_loops():
+    """Against frozen copies of the two rank-in-cell computations it replaced (the per-detection
+    loop of _grid_select and the truncating cells of egm.build.select_keypoints)."""
+    from vrs_jax.features.keypoints import grid_round_robin
+
+    rng = np.random.default_rng(0)
+    for n, grid, dtype in ((500, (4, 3), np.float64), (300, (8, 8), np.float32),
+                           (40, (1, 1), np.float64), (0, (2, 2), np.float64)):
+        w, h = 320.0, 240.0
+        xy = rng.uniform([-2, -2], [w + 2, h + 2], (n, 2)).astype(dtype)  # some off the image
+        xy[:5] = np.round(xy[:5] / 40) * 40  # points on cell borders
+        gx, gy = grid
+        cx = np.clip(np.floor(xy[:, 0] / w * gx), 0, gx - 1).astype(np.int64)
+        cy = np.clip(np.floor(xy[:, 1] / h * gy), 0, gy - 1).astype(np.int64)
+        cell = cy * gx + cx
+        rank, seen = np.zeros(n, np.int64), np.zeros(gx * gy, np.int64)
+        for k, c in enumerate(cell):
+            rank[k] = seen[c]
+            seen[c] += 1
+        want = np.lexsort((np.arange(n), rank))
+        np.testing.assert_array_equal(grid_round_robin(xy, w, h, grid), want)
+        cx = np.clip((xy[:, 0] / w * gx).astype(np.int64), 0, gx - 1)  # select_keypoints' cells
+        cy = np.clip((xy[:, 1] / h * gy).astype(np.int64), 0, gy - 1)
+        np.testing.assert_array_equal(cy * gx + cx, cell)

@@ -16,24 +16,6 @@ def _blobs(seed=0, n=30):
     return pts, np.repeat(np.arange(3), n), centres
 
 
-def test_kmeans_recovers_separated_blobs_deterministically():
-    pts, truth, centres = _blobs()
-    c1, l1 = clusters.kmeans(pts, 3, seed=5)
-    c2, l2 = clusters.kmeans(pts, 3, seed=5)
-    np.testing.assert_array_equal(l1, l2)
-    # Same partition as the truth up to a relabelling, centres near the blob centres.
-    for k in range(3):
-        assert len(np.unique(l1[truth == k])) == 1
-        assert np.min(np.linalg.norm(c1 - centres[k], axis=1)) < 0.3
-
-
-def test_kmeans_pp_seeds_spread_out():
-    pts, _, _ = _blobs()
-    seeds = clusters.kmeans_pp_init(pts, 3, np.random.default_rng(0))
-    d = np.linalg.norm(seeds[:, None] - seeds[None], axis=-1)
-    assert np.min(d[np.triu_indices(3, 1)]) > 5.0  # one seed per blob
-
-
 def test_border_images_are_shared_and_zero_overlap_partitions():
     x = np.array([[0.0, 0, 0], [0.2, 0, 0], [-0.2, 0, 0], [10.0, 0, 0], [10.2, 0, 0],
                   [9.8, 0, 0], [5.5, 0, 0]])  # the last one is near the border

@@ -30,6 +30,17 @@ def check_size(actual: tuple[int, int], declared: tuple[float, float], path: str
                        "damaged image file?", path)
 
 
+# ITU-R BT.601 luma weights (R, G, B): the one grey conversion of the project, for real
+# images read here and for rendered patches (vrs_jax.features.descriptor.rgb_to_gray), so
+# that both sides of a match see the same grey.
+LUMA = (0.299, 0.587, 0.114)
+
+
+def luma(rgb: np.ndarray) -> np.ndarray:
+    """[..., 3] float32 RGB -> [...] float32 grey (BT.601 :data:`LUMA`)."""
+    return rgb @ np.asarray(LUMA, np.float32)
+
+
 def read_image(path: str | Path, background: tuple[float, float, float] | None = None,
                size: tuple[int, int] | None = None) -> np.ndarray:
     """Read a colour image as float32 RGB [H, W, 3] in [0, 1].
@@ -68,10 +79,11 @@ def read_image(path: str | Path, background: tuple[float, float, float] | None =
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
-def read_gray(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an image as float32 grey [H, W] in [0, 1] (luma of the RGB image)."""
-    rgb = read_image(path, size=size)
-    return rgb @ np.asarray([0.299, 0.587, 0.114], np.float32)
+def read_gray(path: str | Path, size: tuple[int, int] | None = None,
+              background: tuple[float, float, float] | None = None) -> np.ndarray:
+    """Read an image as float32 grey [H, W] in [0, 1]: the :func:`luma` of
+    :func:`read_image` (same ``size`` and ``background``)."""
+    return luma(read_image(path, background=background, size=size))
 
 
 def image_size(path: str | Path) -> tuple[int, int]:

@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 from tqdm.auto import tqdm
 
-from vrs_jax.data.images import read_image
+from vrs_jax.data.images import read_gray
 from vrs_jax.data.scene import Scene
 from vrs_jax.egm import map as egm_map
 from vrs_jax.egm.map import EGM, make_egm
@@ -38,7 +38,7 @@ from vrs_jax.egm.triangulate import (
 )
 from vrs_jax.errors import VrsError
 from vrs_jax.features import extract as feat
-from vrs_jax.features.descriptor import LUMA
+from vrs_jax.features.keypoints import grid_round_robin
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,9 +93,8 @@ def extract_reference_features(scene: Scene, cfg: feat.FeatureConfig, progress: 
     for i in tqdm(range(len(scene)), desc="features", unit="img", disable=not progress):
         # RGBA images (NeRF synthetic) are composited on the scene's background, as the
         # NeRF sees them; grey = the descriptor's luma, as for rendered patches
-        rgb = read_image(scene.image_paths[i], background=scene.background,
-                         size=tuple(int(s) for s in scene.sizes[i]))
-        gray = np.ascontiguousarray(rgb @ np.asarray(LUMA, np.float32))
+        gray = read_gray(scene.image_paths[i], size=tuple(int(s) for s in scene.sizes[i]),
+                         background=scene.background)
         kp, d = feat.extract_features(gray, cfg)
         kps.append(kp)
         descs.append(d)
@@ -125,17 +124,7 @@ def select_keypoints(kp: np.ndarray, point_of_kp: np.ndarray, track_len: np.ndar
         return cand
     p = point_of_kp[cand]
     order = cand[np.lexsort((errors[p], -track_len[p]))]  # best first
-    gx, gy = grid
-    w, h = float(size[0]), float(size[1])
-    cx = np.clip((kp[order, 0] / w * gx).astype(np.int64), 0, gx - 1)
-    cy = np.clip((kp[order, 1] / h * gy).astype(np.int64), 0, gy - 1)
-    cell = cy * gx + cx
-    # rank of each keypoint within its cell, in the order above
-    srt = np.argsort(cell, kind="stable")
-    first = np.searchsorted(cell[srt], cell[srt])
-    rank = np.empty(len(order), np.int64)
-    rank[srt] = np.arange(len(order)) - first
-    pri = np.lexsort((np.arange(len(order)), rank))
+    pri = grid_round_robin(kp[order, :2], float(size[0]), float(size[1]), grid)
     return order[pri[:k_max]]
 
 

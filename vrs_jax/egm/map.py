@@ -97,23 +97,23 @@ def make_egm(points3d, R, t, K, dist, sizes, keypoints: list[np.ndarray],
       first).
     """
     n = len(names)
-    counts = [min(len(k), k_max) if k_max is not None else len(k) for k in keypoints]
-    km = int(k_max if k_max is not None else max(counts + [0]))
+    lengths = np.array([len(k) for k in keypoints], np.int64).reshape(n)
+    counts = lengths if k_max is None else np.minimum(lengths, k_max)
+    km = int(k_max if k_max is not None else counts.max(initial=0))
+    mask = np.arange(km)[None, :] < counts[:, None]  # [N, km]: the first counts[i] slots
+    # within-row position of every concatenated input row: rows past the count are dropped
+    pos = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    keep = pos < np.repeat(counts, lengths)
     kp = np.zeros((n, km, 4), np.float32)
     kp[..., 2] = 1.0  # padding: harmless unit-scale keypoints at the origin
+    kp[mask] = _rows(keypoints, 4, np.float32)[keep]
     pi = np.full((n, km), -1, np.int32)
-    mask = np.zeros((n, km), bool)
+    pi[mask] = _rows(point_idx, None, np.int32)[keep]
     ld = None
     if local_desc is not None:
         d = max([x.shape[-1] for x in local_desc if x.ndim == 2] + [0])
         ld = np.zeros((n, km, d), np.float32)
-    for i in range(n):
-        c = counts[i]
-        kp[i, :c] = np.asarray(keypoints[i], np.float32)[:c]
-        pi[i, :c] = np.asarray(point_idx[i], np.int32)[:c]
-        mask[i, :c] = True
-        if ld is not None:
-            ld[i, :c] = np.asarray(local_desc[i], np.float32)[:c]
+        ld[mask] = _rows(local_desc, d, np.float32)[keep]
     f32 = lambda a: jnp.asarray(np.asarray(a, np.float32))  # noqa: E731
     return EGM(points3d=f32(np.reshape(points3d, (-1, 3))), R=f32(R), t=f32(t), K=f32(K),
                dist=f32(dist), sizes=jnp.asarray(np.asarray(sizes, np.int32)),
@@ -121,6 +121,14 @@ def make_egm(points3d, R, t, K, dist, sizes, keypoints: list[np.ndarray],
                global_desc=f32(global_desc), vocab=vocab,
                local_desc=None if ld is None else jnp.asarray(ld),
                names=tuple(names))
+
+
+def _rows(arrays: list[np.ndarray], width: int | None, dtype) -> np.ndarray:
+    """Per-image arrays [K_i, width] (or [K_i] when width is None) -> [sum K_i, ...] in
+    ``dtype``, one concatenation."""
+    shape = (-1,) if width is None else (-1, width)
+    parts = [np.asarray(a, dtype).reshape(shape) for a in arrays]
+    return np.concatenate(parts) if parts else np.zeros((0, *shape[1:]), dtype)
 
 
 def observations(egm: EGM) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

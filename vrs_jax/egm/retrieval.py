@@ -1,7 +1,8 @@
 """Global retrieval without downloaded weights: VLAD over our own local descriptors, in JAX.
 
 * Vocabulary: k-means on descriptors sampled from the reference images -- k-means++
-  initialisation (fixed seed) and Lloyd iterations, both in jitted ``lax.fori_loop`` loops.
+  initialisation (fixed seed) and Lloyd iterations, both in jitted ``lax.fori_loop`` loops
+  (the project's one k-means, :func:`vrs_jax.kmeans.kmeans`).
 * VLAD (Jegou et al. 2010): each descriptor's residual to its nearest word is summed per
   word; then intra-normalisation (each word's block L2-normalised, Arandjelovic & Zisserman
   2013: damps bursty words), power normalisation (signed square root) and a global L2
@@ -24,6 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax.errors import VrsError
+from vrs_jax.kmeans import kmeans, sq_dists
+from vrs_jax.padding import padded_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,74 +76,6 @@ class Vocabulary:
         return int(self.centers.shape[0] * self.centers.shape[1])
 
 
-# ----------------------------------------------------------------------------- k-means
-
-
-def _sq_dists(x, c):
-    """[M, D], [k, D] -> [M, k] squared Euclidean distances (>= 0)."""
-    d2 = (jnp.sum(x * x, -1)[:, None] + jnp.sum(c * c, -1)[None, :]
-          - 2.0 * jnp.matmul(x, c.T, precision="highest"))
-    return jnp.maximum(d2, 0.0)
-
-
-@partial(jax.jit, static_argnames=("k",))
-def kmeans_pp_init(key, x, k: int):
-    """k-means++ seeding (Arthur & Vassilvitskii 2007).
-
-    Args:
-      key: PRNG key.  x: [M, D] points (M >= 1).  k: number of centres.
-    Returns:
-      [k, D] centres: the first uniform, each next one drawn with probability proportional
-      to the squared distance to the nearest centre chosen so far.
-    """
-    m = x.shape[0]
-    k0, key = jax.random.split(key)
-    first = x[jax.random.randint(k0, (), 0, m)]
-    centers = jnp.zeros((k, x.shape[1]), x.dtype).at[0].set(first)
-    d2 = jnp.sum((x - first) ** 2, -1)
-
-    def body(i, state):
-        centers, d2, key = state
-        key, sub = jax.random.split(key)
-        # all-zero d2 (fewer distinct points than k): fall back to uniform sampling
-        logits = jnp.where(jnp.sum(d2) > 0, jnp.log(jnp.maximum(d2, 1e-30)), 0.0)
-        j = jax.random.categorical(sub, logits)
-        c = x[j]
-        centers = centers.at[i].set(c)
-        d2 = jnp.minimum(d2, jnp.sum((x - c) ** 2, -1))
-        return centers, d2, key
-
-    centers, _, _ = jax.lax.fori_loop(1, k, body, (centers, d2, key))
-    return centers
-
-
-@partial(jax.jit, static_argnames=("iters",))
-def lloyd(x, centers, iters: int):
-    """Lloyd iterations: [M, D] points, [k, D] initial centres -> [k, D] centres.
-
-    An empty cluster keeps its previous centre.
-    """
-    k = centers.shape[0]
-
-    def body(_, c):
-        a = jnp.argmin(_sq_dists(x, c), axis=1)
-        onehot = jax.nn.one_hot(a, k, dtype=x.dtype)  # [M, k]
-        s = jnp.matmul(onehot.T, x, precision="highest")
-        n = onehot.sum(0)[:, None]
-        return jnp.where(n > 0, s / jnp.maximum(n, 1.0), c)
-
-    return jax.lax.fori_loop(0, iters, body, centers)
-
-
-def kmeans(x: np.ndarray, k: int, iters: int = 25, seed: int = 0) -> np.ndarray:
-    """k-means++ then Lloyd: [M, D] -> [k, D] float32 centres (deterministic for a seed)."""
-    x = jnp.asarray(x, jnp.float32)
-    if x.ndim != 2 or x.shape[0] < 1:
-        raise VrsError(f"k-means needs a non-empty [M, D] array, got shape {tuple(x.shape)}")
-    c0 = kmeans_pp_init(jax.random.PRNGKey(seed), x, k)
-    return np.asarray(lloyd(x, c0, iters))
-
-
 # ----------------------------------------------------------------------------- VLAD
 
 
@@ -156,7 +91,7 @@ def vlad(desc, mask, centers, power: float = 0.5):
     desc = jnp.asarray(desc, jnp.float32)
     centers = jnp.asarray(centers, jnp.float32)
     k = centers.shape[0]
-    a = jnp.argmin(_sq_dists(desc, centers), axis=1)
+    a = jnp.argmin(sq_dists(desc, centers), axis=1)
     w = jax.nn.one_hot(a, k, dtype=jnp.float32) * jnp.asarray(mask, jnp.float32)[:, None]
     # sum over assigned descriptors of (x - c): W^T X - (sum W) c
     v = jnp.matmul(w.T, desc, precision="highest") - w.sum(0)[:, None] * centers  # [k, D]
@@ -181,10 +116,6 @@ def _global_batch(desc, mask, vocab: Vocabulary):
     return apply_pca(v, vocab)
 
 
-def _bucket(k: int) -> int:
-    return max(16, 1 << max(0, int(k) - 1).bit_length())
-
-
 def global_descriptor(desc: np.ndarray, mask: np.ndarray | None, vocab: Vocabulary
                       ) -> np.ndarray:
     """Host helper: one image's global descriptor [G] float32 (references and queries alike).
@@ -201,7 +132,7 @@ def global_descriptors(descs: list[np.ndarray], masks: list[np.ndarray] | None,
                        vocab: Vocabulary) -> np.ndarray:
     """Global descriptors [N, G] float32 of N images (padded to one shape, one jitted call)."""
     d = int(vocab.centers.shape[1])
-    kmax = _bucket(max([len(x) for x in descs] + [1]))
+    kmax = padded_size(max([len(x) for x in descs] + [1]))
     n = len(descs)
     D = np.zeros((n, kmax, d), np.float32)
     M = np.zeros((n, kmax), bool)

@@ -31,6 +31,7 @@ from vrs_jax.data.readers.colmap import colmap_camera, quiet_pycolmap
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.features.matching import match_jit
+from vrs_jax.padding import padded_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,12 +121,6 @@ def _pad(desc: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return out, mask
 
 
-def pad_size(counts: list[int]) -> int:
-    """One padded keypoint count for all images: the next power of two >= max (>= 16)."""
-    m = max([16, *counts])
-    return 1 << (m - 1).bit_length()
-
-
 def match_pair(desc_i: np.ndarray, desc_j: np.ndarray, cfg: TriangulationConfig,
                pad: int | None = None) -> np.ndarray:
     """Mutual-NN + ratio matches of two images: [m, 2] int64 (keypoint in i, keypoint in j).
@@ -135,7 +130,7 @@ def match_pair(desc_i: np.ndarray, desc_j: np.ndarray, cfg: TriangulationConfig,
     """
     if len(desc_i) == 0 or len(desc_j) == 0:
         return np.zeros((0, 2), np.int64)
-    n = pad or pad_size([len(desc_i), len(desc_j)])
+    n = pad or padded_size(max(len(desc_i), len(desc_j)))
     di, mi = _pad(desc_i, n)
     dj, mj = _pad(desc_j, n)
     idx, valid, _ = match_jit(jnp.asarray(di), jnp.asarray(mi), jnp.asarray(dj),
@@ -199,7 +194,7 @@ def match_pairs(scene: Scene, keypoints: list[np.ndarray], descriptors: list[np.
       matches: {(i, j): [m, 2] int64} verified matches (pairs with fewer than
         ``cfg.min_pair_matches`` dropped); stats: counters.
     """
-    pad = pad_size([len(d) for d in descriptors])
+    pad = padded_size(max([len(d) for d in descriptors] + [0]))
     out: dict[tuple[int, int], np.ndarray] = {}
     n_raw = n_ver = n_empty = 0
     for i, j in np.asarray(pairs, np.int64).reshape(-1, 2):
@@ -371,25 +366,26 @@ def _collect(scene: Scene, keypoints: list[np.ndarray], rec: pycolmap.Reconstruc
     ids = sorted(rec.point3D_ids())
     if not ids:
         return _empty(len(scene), keypoints, stats)
-    X = np.array([rec.point3D(p).xyz for p in ids], np.float64).reshape(-1, 3)
-    obs_image, obs_kp, obs_point = [], [], []
-    for m, p in enumerate(ids):
-        for el in rec.point3D(p).track.elements:
-            obs_image.append(el.image_id - 1)
-            obs_kp.append(el.point2D_idx)
-            obs_point.append(m)
-    obs_image = np.asarray(obs_image, np.int64)
-    obs_kp = np.asarray(obs_kp, np.int64)
-    obs_point = np.asarray(obs_point, np.int64)
+    # pycolmap's points and tracks are objects: one pass reads them (the only per-observation
+    # Python here); everything after works on the flat observation arrays.
+    points = [rec.points3D[p] for p in ids]
+    X = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+    tracks = [p.track.elements for p in points]
+    obs_image = np.fromiter((el.image_id for els in tracks for el in els), np.int64) - 1
+    obs_kp = np.fromiter((el.point2D_idx for els in tracks for el in els), np.int64)
+    obs_point = np.repeat(np.arange(len(ids), dtype=np.int64), [len(e) for e in tracks])
     # Reprojection errors with our own projection (an independent check of pycolmap's).
+    # One vectorised projection per observing image (loop over images, not observations).
     obs_err = np.zeros(len(obs_image))
-    point_of_kp = [np.full(len(k), -1, np.int64) for k in keypoints]
     for i in np.unique(obs_image):
         sel = obs_image == i
         uv, _ = geometry.project(scene.K[i], scene.R[i], scene.t[i], X[obs_point[sel]],
                                  scene.dist[i])
         obs_err[sel] = np.linalg.norm(uv - keypoints[i][obs_kp[sel], :2], axis=-1)
-        point_of_kp[i][obs_kp[sel]] = obs_point[sel]
+    lengths = [len(k) for k in keypoints]
+    flat = np.full(sum(lengths), -1, np.int64)  # point of every keypoint of every image
+    flat[np.cumsum([0, *lengths])[obs_image] + obs_kp] = obs_point
+    point_of_kp = _split(flat, lengths)
     m = len(X)
     track_len = np.bincount(obs_point, minlength=m)
     errors = np.bincount(obs_point, weights=obs_err, minlength=m) / np.maximum(track_len, 1)
@@ -398,18 +394,28 @@ def _collect(scene: Scene, keypoints: list[np.ndarray], rec: pycolmap.Reconstruc
                          obs_point, obs_err, point_of_kp, stats)
 
 
+def _concat(rows: list[np.ndarray]) -> np.ndarray:
+    """Per-image int arrays [K_i] -> [sum K_i] int64."""
+    return np.concatenate([np.asarray(r, np.int64).reshape(-1) for r in rows]
+                          + [np.zeros(0, np.int64)])
+
+
+def _split(flat: np.ndarray, lengths: list[int]) -> list[np.ndarray]:
+    """Inverse of :func:`_concat`: [sum K_i] -> [N] arrays [K_i] (copies)."""
+    return [a.copy() for a in np.split(flat, np.cumsum(lengths)[:-1])] if lengths else []
+
+
 def subset_points(tr: Triangulation, keep: np.ndarray) -> Triangulation:
     """The triangulation restricted to the points where ``keep`` [M] is True (reindexed)."""
     keep = np.asarray(keep, bool)
     new_index = np.cumsum(keep) - 1
     sel = keep[tr.obs_point]
-    point_of_kp = []
-    for p in tr.point_of_kp:
-        q = np.full(len(p), -1, np.int64)
-        ok = p >= 0
-        ok[ok] = keep[p[ok]]
-        q[ok] = new_index[p[ok]]
-        point_of_kp.append(q)
+    flat = _concat(tr.point_of_kp)
+    ok = flat >= 0
+    ok[ok] = keep[flat[ok]]
+    flat = np.where(ok, flat, -1)
+    flat[ok] = new_index[flat[ok]]
+    point_of_kp = _split(flat, [len(p) for p in tr.point_of_kp])
     return Triangulation(tr.points3d[keep], tr.errors[keep], tr.track_lengths[keep],
                          tr.tri_angles[keep], tr.obs_image[sel], tr.obs_kp[sel],
                          new_index[tr.obs_point[sel]], tr.obs_errors[sel], point_of_kp,

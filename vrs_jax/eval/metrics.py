@@ -26,6 +26,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from vrs_jax.fileio import json_ready  # noqa: F401  (re-exported: reports use it)
+from vrs_jax.geometry import camera_center
 
 # Recall thresholds (translation in metres, rotation in degrees), keyed as in summary.json:
 # hloc's seven (5cm/5deg is 7Scenes' standard, 25cm/2deg Cambridge's, 25cm/2deg + 50cm/5deg
@@ -66,10 +67,10 @@ def pose_errors(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np
     ok = ok & np.isfinite(R_est).all(axis=(-1, -2)) & np.isfinite(t_est).all(axis=-1)
     R_safe = np.where(ok[:, None, None], R_est, np.eye(3))
     t_safe = np.where(ok[:, None], t_est, 0.0)
+    dt = np.linalg.norm(camera_center(R_safe, t_safe) - camera_center(R_gt, t_gt), axis=-1)
+    # hloc's arccos formula on purpose (not geometry.rotation_angle's atan2), so that the
+    # reported errors are hloc's to the last digit.
     R_gt_T = np.swapaxes(R_gt, -1, -2)
-    c_gt = -(R_gt_T @ t_gt[..., None])[..., 0]
-    c_est = -(np.swapaxes(R_safe, -1, -2) @ t_safe[..., None])[..., 0]
-    dt = np.linalg.norm(c_est - c_gt, axis=-1)
     cos = np.clip((np.trace(R_gt_T @ R_safe, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     dr = np.rad2deg(np.abs(np.arccos(cos)))
     return np.where(ok, dt, MISSING_T_ERR), np.where(ok, dr, MISSING_R_ERR_DEG)

@@ -36,11 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from vrs_jax.data.images import LUMA
 from vrs_jax.errors import VrsError
-
-# ITU-R BT.601 luma, the same weights as vrs_jax.data.images.read_gray, so that real images
-# read as grey and rendered RGB patches converted here agree.
-LUMA = (0.299, 0.587, 0.114)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,6 +17,7 @@ from vrs_jax.errors import VrsError
 from vrs_jax.features.descriptor import DescriptorConfig, describe
 from vrs_jax.features.keypoints import KeypointConfig, detect
 from vrs_jax.features.patches import PatchConfig, extract_patches
+from vrs_jax.padding import padded_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,11 +68,6 @@ def describe_keypoints(image, kp, patch_cfg: PatchConfig = PatchConfig(),
 describe_keypoints_jit = jax.jit(describe_keypoints, static_argnames=("patch_cfg", "desc_cfg"))
 
 
-def _bucket(k: int) -> int:
-    """Padded keypoint count: the next power of two, at least 16."""
-    return max(16, 1 << max(0, int(k) - 1).bit_length())
-
-
 def extract_features(gray, cfg: FeatureConfig | KeypointConfig | None = None,
                      patch_cfg: PatchConfig | None = None,
                      desc_cfg: DescriptorConfig | None = None, return_response: bool = False):
@@ -102,7 +98,7 @@ def extract_features(gray, cfg: FeatureConfig | KeypointConfig | None = None,
     if k == 0:
         desc = np.zeros((0, desc_cfg.dim), np.float32)
     else:
-        pad = np.zeros((_bucket(k), 4), np.float32)
+        pad = np.zeros((padded_size(k), 4), np.float32)
         pad[:k] = kp
         pad[k:, 2] = 1.0  # harmless dummy keypoints (scale 1 at the origin)
         d = describe_keypoints_jit(jnp.asarray(g, jnp.float32), jnp.asarray(pad),

@@ -96,18 +96,29 @@ def _grid_select(xy: np.ndarray, response: np.ndarray, width: int, height: int,
     if grid is None or len(order) <= k:
         sel = order[:k]
     else:
-        gx, gy = grid
-        cx = np.clip(np.floor(xy[order, 0] / width * gx), 0, gx - 1).astype(np.int64)
-        cy = np.clip(np.floor(xy[order, 1] / height * gy), 0, gy - 1).astype(np.int64)
-        cell = cy * gx + cx
-        rank = np.zeros(len(order), np.int64)
-        seen = np.zeros(gx * gy, np.int64)
-        for n, c in enumerate(cell):  # host loop over detections, once per image
-            rank[n] = seen[c]
-            seen[c] += 1
-        pri = np.lexsort((np.arange(len(order)), rank))  # by rank, then by response order
-        sel = order[np.sort(pri[:k])]
+        sel = order[np.sort(grid_round_robin(xy[order], width, height, grid)[:k])]
     return sel
+
+
+def grid_round_robin(xy: np.ndarray, width: float, height: float, grid: tuple[int, int]
+                     ) -> np.ndarray:
+    """Round-robin order over grid cells of points given best first.
+
+    Args:
+      xy: [n, 2] pixel positions, best first.  width, height: image size.
+      grid: (columns, rows) of the grid over the image.
+    Returns:
+      [n] int64 permutation sorting the points by (rank of the point within its cell, input
+      position): every cell gives its best point before any gives its second.
+    """
+    gx, gy = grid
+    cx = np.clip(np.floor(xy[:, 0] / width * gx), 0, gx - 1).astype(np.int64)
+    cy = np.clip(np.floor(xy[:, 1] / height * gy), 0, gy - 1).astype(np.int64)
+    cell = cy * gx + cx
+    srt = np.argsort(cell, kind="stable")  # by cell, input order inside a cell
+    rank = np.empty(len(cell), np.int64)
+    rank[srt] = np.arange(len(cell)) - np.searchsorted(cell[srt], cell[srt])
+    return np.lexsort((np.arange(len(cell)), rank))
 
 
 def detect(gray: np.ndarray, cfg: KeypointConfig = KeypointConfig(),

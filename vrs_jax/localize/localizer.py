@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vrs_jax.data.images import read_gray
+from vrs_jax.data.images import luma, read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
@@ -37,9 +37,6 @@ from vrs_jax.maps import Map, load_map
 # the centre; a K meant for another image size (e.g. the full-resolution K with a half-size
 # image) puts it at the border or outside, which 0.25 catches.
 PRINCIPAL_POINT_TOLERANCE = 0.25
-
-LUMA = np.asarray([0.299, 0.587, 0.114], np.float32)  # as vrs_jax.data.images.read_gray
-
 
 def to_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
     """[H, W] or [H, W, 3] array (uint8 in 0..255, or float in [0, 1]) -> float32 grey
@@ -56,7 +53,7 @@ def to_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
         a = a.astype(np.float32) / 65535.0
     else:
         a = a.astype(np.float32)
-    return a @ LUMA if a.ndim == 3 else a
+    return luma(a) if a.ndim == 3 else a
 
 
 def check_intrinsics(width: int, height: int, K: np.ndarray, name: str = "image") -> None:

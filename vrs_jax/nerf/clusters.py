@@ -1,7 +1,9 @@
 """Scene division: K-means on reference camera centres, with shared border images.
 
-Small and host-side (numpy): N is the number of reference images (hundreds to a few
-thousands), so a plain Lloyd iteration is instantaneous. Deterministic for a fixed seed.
+N is the number of reference images (hundreds to a few thousands). The K-means is the
+project's one (:func:`vrs_jax.kmeans.kmeans`: k-means++ and Lloyd in JAX, deterministic for a
+fixed seed), run on the centred camera positions so that float32 keeps its precision in
+world coordinates far from the origin; the rest is host-side numpy in float64.
 """
 
 from __future__ import annotations
@@ -11,6 +13,10 @@ from typing import NamedTuple
 import numpy as np
 
 from vrs_jax.errors import VrsError
+from vrs_jax.kmeans import kmeans
+
+# Lloyd iterations: a few hundred camera positions converge in well under 100.
+KMEANS_ITERS = 100
 
 
 class Clustering(NamedTuple):
@@ -20,57 +26,6 @@ class Clustering(NamedTuple):
     centers: np.ndarray
     primary: np.ndarray
     membership: np.ndarray
-
-
-def kmeans_pp_init(points: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """k-means++ seeding: each new centre drawn with probability ~ squared distance.
-
-    points: [N, D] -> centres [k, D].
-    """
-    n = len(points)
-    centers = [points[rng.integers(n)]]
-    d2 = np.sum((points - centers[0]) ** 2, axis=1)
-    for _ in range(1, k):
-        total = d2.sum()
-        if total <= 0:  # all remaining points coincide with centres: pick any
-            idx = int(rng.integers(n))
-        else:
-            idx = int(rng.choice(n, p=d2 / total))
-        centers.append(points[idx])
-        d2 = np.minimum(d2, np.sum((points - points[idx]) ** 2, axis=1))
-    return np.stack(centers)
-
-
-def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 100
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """Lloyd's K-means with k-means++ seeding.
-
-    Args:
-      points: [N, D] float.
-      k: number of clusters (1 <= k <= N).
-    Returns:
-      centres [k, D] and labels [N] int. A cluster that ends up empty keeps its centre and
-      has no label (callers check; see :func:`cluster_cameras`).
-    """
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or len(points) == 0:
-        raise VrsError(f"K-means needs points [N, D] with N >= 1, got shape {points.shape}")
-    if not 1 <= k <= len(points):
-        raise VrsError(f"cannot make {k} clusters from {len(points)} reference images")
-    rng = np.random.default_rng(seed)
-    centers = kmeans_pp_init(points, k, rng)
-    labels = np.zeros(len(points), dtype=np.int64)
-    for it in range(iters):
-        d2 = np.sum((points[:, None, :] - centers[None]) ** 2, axis=-1)  # [N, k]
-        new_labels = np.argmin(d2, axis=1)
-        if it > 0 and np.array_equal(new_labels, labels):
-            break
-        labels = new_labels
-        for j in range(k):
-            sel = labels == j
-            if sel.any():
-                centers[j] = points[sel].mean(axis=0)
-    return centers, labels
 
 
 def cluster_cameras(camera_centers: np.ndarray, n_clusters: int, overlap: float = 0.2,
@@ -91,9 +46,15 @@ def cluster_cameras(camera_centers: np.ndarray, n_clusters: int, overlap: float 
       than clusters).
     """
     x = np.asarray(camera_centers, dtype=np.float64)
-    centers, labels = kmeans(x, n_clusters, seed=seed)
-    check_nonempty(np.eye(n_clusters, dtype=bool)[:, labels])
+    if x.ndim != 2 or len(x) == 0:
+        raise VrsError(f"camera centres must be [N, 3] with N >= 1, got shape {x.shape}")
+    if not 1 <= n_clusters <= len(x):
+        raise VrsError(f"cannot make {n_clusters} clusters from {len(x)} reference images")
+    mean = x.mean(axis=0)
+    centers = kmeans(x - mean, n_clusters, iters=KMEANS_ITERS, seed=seed) + mean
     dist = np.sqrt(np.sum((x[:, None, :] - centers[None]) ** 2, axis=-1))  # [N, C]
+    labels = np.argmin(dist, axis=1)  # nearest centre
+    check_nonempty(np.eye(n_clusters, dtype=bool)[:, labels])
     own = dist[np.arange(len(x)), labels]
     membership = (dist <= (1.0 + overlap) * own[:, None]).T  # [C, N]
     membership[labels, np.arange(len(x))] = True
