@@ -52,7 +52,7 @@ from vrs_jax.errors import VrsError
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_WORK = "outputs/bench_work"
 DEFAULT_JSON_DIR = "outputs/benchmarks"
-RUNS_VERSION = 1
+RUNS_VERSION = 2
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -316,10 +316,10 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     ``localize_s_per_query`` (sum of the median stage times), ``wall_s``, ``measured_at``,
     ``reused`` and ``record``.
     """
-    from vrs_jax.eval import metrics
     from vrs_jax.eval.report import summarize
     from vrs_jax.localize import STAGE_NAMES
     from vrs_jax.localize.batch import localize_scene
+    from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query
 
     key = {"version": RUNS_VERSION, "map": map_stamp(ctx.map_dir), "cfg": repr(cfg),
            "queries": list(ctx.queries.names), "source": source_hash()}
@@ -334,32 +334,51 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
         if doc is not None and doc.get("key") == key:
             log(f"[{ctx.name}] {tag}: reusing {path} ({doc['summary']['measured_at']})")
             out = doc["summary"]
-            out["per_query"]["t_err_m"] = _inf(out["per_query"]["t_err_m"])
-            out["per_query"]["R_err_deg"] = _inf(out["per_query"]["R_err_deg"], 180.0)
+            for o in (out, out.get("first_pass")):
+                if o:
+                    o["per_query"]["t_err_m"] = _inf(o["per_query"]["t_err_m"])
+                    o["per_query"]["R_err_deg"] = _inf(o["per_query"]["R_err_deg"], 180.0)
             return {**out, "reused": True, "record": str(path)}
     t0 = time.perf_counter()
     results, info = localize_scene(ctx.m, ctx.queries, cfg, progress=progress)
     wall = time.perf_counter() - t0
-    s = summarize(ctx.queries, results, info, ctx.m, cfg, ctx.map_dir)
-    q = ctx.queries
+    first = [None if r is None else r.replace(R=r.R_first, t=r.t_first,
+                                               n_inliers=r.n_inliers_first) for r in results]
+    out = {}
+    for which, res in (("final", results), ("first", first)):
+        s = summarize(ctx.queries, res, info, ctx.m, cfg, ctx.map_dir)
+        s["per_query"] = _per_query(ctx.queries, res)
+        if which == "first":  # the first pass alone: no guided stage, its rays only
+            cfg1 = dataclasses.replace(cfg, guided_passes=0)
+            s["timing_s"] = {**s["timing_s"], "guided": 0.0}
+            s["rays_per_query"] = rays_per_query(ctx.m, cfg1)
+            s["nerf_evals_per_query"] = s["rays_per_query"] * nerf_evals_per_ray(ctx.m, cfg1)
+        s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
+        s["wall_s"] = wall
+        s["measured_at"] = now()
+        out[which] = s
+    s = out["final"]
+    s["first_pass"] = out["first"] if cfg.guided_passes else None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, {"key": key, "summary": s})
+    return {**s, "reused": False, "record": str(path)}
+
+
+def _per_query(q, results: list) -> dict[str, list]:
+    """Per-query errors (inf / 180 for a query without a result), success, inliers, matches."""
+    from vrs_jax.eval import metrics
+
     has = np.array([r is not None for r in results]) & np.asarray(q.has_pose, bool)
     R = np.stack([np.asarray(r.R, np.float64) if r is not None else np.eye(3)
                   for r in results])
     t = np.stack([np.asarray(r.t, np.float64) if r is not None else np.zeros(3)
                   for r in results])
     dt, dr = metrics.pose_errors(R, t, q.R, q.t, has_estimate=has)
-    s["per_query"] = {
-        "names": list(q.names), "t_err_m": dt.tolist(), "R_err_deg": dr.tolist(),
-        "success": [bool(r is not None and r.success) for r in results],
-        "fallback": [bool(r is not None and r.fallback) for r in results],
-        "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
-        "matches": [int(r.n_matches) if r is not None else 0 for r in results]}
-    s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
-    s["wall_s"] = wall
-    s["measured_at"] = now()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, {"key": key, "summary": s})
-    return {**s, "reused": False, "record": str(path)}
+    return {"names": list(q.names), "t_err_m": dt.tolist(), "R_err_deg": dr.tolist(),
+            "success": [bool(r is not None and r.success) for r in results],
+            "fallback": [bool(r is not None and r.fallback) for r in results],
+            "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
+            "matches": [int(r.n_matches) if r is not None else 0 for r in results]}
 
 
 def _inf(xs: list, missing: float = math.inf) -> list[float]:

@@ -66,8 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a NerfConfig field (repeatable)")
     p.add_argument("--localize", action="append", default=[], metavar="KEY=VALUE",
                    help="override a LocalizeConfig field of the renderer (depth_guided, "
-                        "narrow_samples, narrow_fine, depth_margin), e.g. to separate the field's error "
-                        "from the depth-guided sampling's")
+                        "narrow_samples, narrow_fine, depth_margin), e.g. to separate the "
+                        "field's error from the depth-guided sampling's")
     p.add_argument("--render", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NerfConfig sampling field at rendering only (e.g. "
                         "num_samples_coarse=16, num_samples_fine=16 with depth_guided=false)")

@@ -44,13 +44,11 @@ def test_localize_benchmark_json(localize_doc, loaded):
     doc = localize_doc
     assert ENV_KEYS <= set(doc) and doc["benchmark"] == "localize"
     assert doc["versions"]["jax"] and doc["machine"]["cpu_count"] >= 1
-    assert [r["mode"] for r in doc["rows"]] == ["render", "render-full", "real", "sift"]
+    assert [r["mode"] for r in doc["rows"]] == ["render", "real", "sift"]
     egm = loaded.egm
-    sift = doc["rows"][3]
+    sift = doc["rows"][2]
     assert sift["n_queries"] == 2 and sift["map_bytes"]["total"] > 0
-    full = doc["rows"][1]
-    assert not full["localize_config"]["depth_guided"] and full["timing_s"]["render"] > 0
-    for r in doc["rows"][:3]:
+    for r in doc["rows"][:2]:
         assert r["n_queries"] == 2 and len(r["per_query"]["t_err_m"]) == 2
         assert set(r["recall"]) >= {"5cm_5deg", "2cm_2deg", "25cm_2deg"}
         assert all(0.0 <= v <= 1.0 for v in r["recall"].values())
@@ -70,8 +68,26 @@ def test_localize_benchmark_json(localize_doc, loaded):
             assert r["map_bytes"]["total"] > r["map_bytes"]["descriptors"] > 0
             assert r["map_bytes"]["ilm"] == 0
     # the baseline localizes the easy synthetic queries (real patches)
-    assert _finite(doc["rows"][2]["median_t_cm"]) and doc["rows"][2]["median_t_cm"] < 5
+    assert _finite(doc["rows"][1]["median_t_cm"]) and doc["rows"][1]["median_t_cm"] < 5
     assert doc["maps"]["synthetic"]["n_queries_used"] == 2
+
+
+def test_guided_runs_report_their_first_pass(base, tmp_path):
+    """A config with a guided pass: the run's summary carries the first pass's poses,
+    errors and inliers (no guided time), and localize rows get a "pass 1" twin."""
+    from benchmarks import common
+
+    args = localize.build_parser().parse_args(base + ["--scenes", "synthetic"])
+    ctx = common.prepare_scene("synthetic", args, log=lambda s: None)
+    cfg = common.localize_cfg(ctx, "real", guided_passes=1)
+    s = common.localize_run(ctx, cfg, tmp_path, progress=False, log=lambda s: None)
+    first = s["first_pass"]
+    assert first["timing_s"]["guided"] == 0 and s["timing_s"]["guided"] > 0
+    assert len(first["per_query"]["t_err_m"]) == len(s["per_query"]["t_err_m"]) == 2
+    for a, b in zip(first["per_query"]["inliers"], s["per_query"]["inliers"], strict=True):
+        assert b >= a  # the guided pass is kept only with at least as many inliers
+    again = common.localize_run(ctx, cfg, tmp_path, progress=False, log=lambda s: None)
+    assert again["reused"] and again["first_pass"]["per_query"] == first["per_query"]
 
 
 def test_ablation_reuses_the_localize_runs(base, localize_doc, tmp_path):

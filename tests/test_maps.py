@@ -139,3 +139,15 @@ def test_named_config_comments_match_values():
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
             test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
         128, 64, 9, 64, 800)
+
+
+def test_named_localize_config_comments_match_values():
+    from vrs_jax import localize
+
+    paper, cpu, test = (localize.get_config(n) for n in ("paper", "cpu-small", "test"))
+    assert (paper.top_k, paper.query_keypoints, paper.depth_guided, paper.guided_passes) == (
+        5, 2048, False, 0)
+    assert (cpu.top_k, cpu.query_keypoints, cpu.depth_guided, cpu.narrow_samples,
+            cpu.narrow_fine, cpu.guided_passes) == (3, 1024, True, 16, 8, 1)
+    assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
+            test.guided_passes) == (2, 256, 8, 4, 0)

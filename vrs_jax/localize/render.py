@@ -130,12 +130,14 @@ def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: Patc
 
 
 def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
-    """Mean patch rays rendered per query (valid keypoints of k reference images x P^2)."""
+    """Mean patch rays rendered per query (valid keypoints of k reference images x P^2, once
+    more per guided pass that renders, when the first pass succeeds)."""
     if cfg.source != "render":
         return 0.0
     size = (cfg.patches or m.config.features.patches).size
     per_image = np.asarray(m.egm.kp_mask).sum(axis=1).mean() * size ** 2
-    return float(min(cfg.top_k, m.egm.num_images) * per_image)
+    passes = 1 + (cfg.guided_passes if cfg.guided_render else 0)
+    return float(passes * min(cfg.top_k, m.egm.num_images) * per_image)
 
 
 def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:

@@ -62,6 +62,30 @@ Returns:
   localizes a stacked batch of queries.
 """
 
+# Stages that render: a batch runs them one query after the other (lax.map), because under
+# vmap the renderer's "skip chunks past the last valid keypoint" branch becomes a select that
+# renders the padding too; every other stage is vmapped over the batch.
+SEQUENTIAL_STAGES = ("render", "guided")
+
+
+def _localize_batch(m: Map, qs: Query, cfg: LocalizeConfig) -> LocalizeResult:
+    st.check(m, cfg)
+    s: st.State = {}
+    for name, fn in st.stages_for(cfg):
+        if name in SEQUENTIAL_STAGES and cfg.source == "render":
+            out = jax.lax.map(lambda a, fn=fn: fn(m, a[0], cfg, a[1]), (qs, s))
+        else:
+            out = jax.vmap(lambda q, s_, fn=fn: fn(m, q, cfg, s_))(qs, s)
+        s.update(out)
+    return s["result"]
+
+
+localize_batch = jax.jit(_localize_batch, static_argnames=("cfg",))
+localize_batch.__doc__ = """Localize a stacked batch of queries (leading axis B): the same stages
+as :func:`localize`, vmapped, except that the rendering stages run query by query so that no
+padding is rendered (see :data:`SEQUENTIAL_STAGES`). Returns a LocalizeResult with a leading
+axis B, equal to ``jax.vmap(localize)``'s."""
+
 _JITTED = {name: jax.jit(fn, static_argnames=("cfg",)) for name, fn in st.STAGES}
 JITTED_STAGES = _JITTED  # one jitted function per stage (compiled once per map and config)
 

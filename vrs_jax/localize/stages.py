@@ -51,6 +51,8 @@ class LocalizeResult:
     success: [] bool PnP succeeded; fallback: [] bool the pose is the retrieval fallback.
     n_inliers: [] int32 distinct 2D-3D inliers; n_matches: [] int32 distinct 2D-3D
     correspondences fed to RANSAC. retrieved: [k] int32 reference indices, best first.
+    R_first, t_first, n_inliers_first: the first pass's pose and inliers (equal to R, t,
+    n_inliers unless a guided pass improved them).
     """
 
     R: Array
@@ -60,6 +62,9 @@ class LocalizeResult:
     n_inliers: Array
     n_matches: Array
     retrieved: Array
+    R_first: Array
+    t_first: Array
+    n_inliers_first: Array
 
 
 def check(m: Map, cfg: LocalizeConfig) -> None:
@@ -137,10 +142,11 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                        q.K, cfg.pnp)
     top = s["idx"][0]
     ok = pose.success
-    res = LocalizeResult(R=jnp.where(ok, pose.R, m.egm.R[top]),
-                         t=jnp.where(ok, pose.t, m.egm.t[top]), success=ok, fallback=~ok,
-                         n_inliers=pose.n_inliers,
-                         n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"])
+    R = jnp.where(ok, pose.R, m.egm.R[top])
+    t = jnp.where(ok, pose.t, m.egm.t[top])
+    res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
+                         n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
+                         R_first=R, t_first=t, n_inliers_first=pose.n_inliers)
     return {"result": res, "inliers": pose.inliers}
 
 
