@@ -339,9 +339,10 @@ def descriptor_arrays(egm: EGM) -> dict[str, np.ndarray]:
     return {"local_desc": np.asarray(egm.local_desc)[mask].astype(np.float16)}
 
 
-# member -> (dtype kinds accepted, what it must be); shapes are checked in from_arrays
+# member -> dtype kinds accepted ("u1": uint8 only); shapes are checked in from_arrays
 _KINDS = {
-    "points_q": "u1", "points_origin": "f", "points_step": "f", "R": "f", "t": "f", "K": "f", "dist": "f", "sizes": "iu",
+    "points_q": "u1", "points_origin": "f", "points_step": "f",
+    "R": "f", "t": "f", "K": "f", "dist": "f", "sizes": "iu",
     "kp_counts": "u", "kp_xy_res": "i1", "kp_xy_exact_idx": "u", "kp_xy_exact": "f",
     "kp_scale": "u1", "kp_log2_scale_range": "f", "kp_angle": "u1", "point_idx": "u1",
     "global_desc": "i1", "global_scale": "f", "vocab_centers": "f", "vocab_power": "f",
@@ -360,7 +361,8 @@ def from_arrays(a: dict[str, np.ndarray], names: tuple[str, ...], k_max: int, wh
     """Inverse of :func:`to_arrays` (+ optional ``descriptors`` [O, D] from
     :func:`descriptor_arrays`); one VrsError line naming ``where`` for a missing, ill-typed,
     ill-shaped or inconsistent array."""
-    need = ["points_q", "points_origin", "points_step", "R", "t", "K", "dist", "sizes", "kp_counts", "kp_xy_res",
+    need = ["points_q", "points_origin", "points_step", "R", "t", "K", "dist", "sizes",
+            "kp_counts", "kp_xy_res",
             "kp_xy_exact_idx", "kp_xy_exact", "kp_scale", "kp_log2_scale_range", "kp_angle",
             "point_idx", "global_desc", "global_scale", "vocab_centers", "vocab_power"]
     missing = [k for k in need if k not in a]
