@@ -142,3 +142,43 @@ def test_named_config_comments_match_values():
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
             test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
         128, 64, 9, 64, 800)
+
+
+def test_quantised_map_localizes_as_its_float_originals_would(tiny_map, small_synthetic_scene):
+    """The stored map is a quantised copy of the float32 map it was built from: every
+    keypoint, scale, angle, 3D point and NeRF weight within its storage bound of the value
+    loaded. A map moved by those bounds (another float32 map that stores to the same bytes)
+    localizes the queries to the same poses in render mode, which reads all of them."""
+    from vrs_jax import localize
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.egm import map as egm_map
+    from vrs_jax.localize.batch import localize_scene
+
+    m = maps.load_map(tiny_map).without_descriptors()
+    rng = np.random.default_rng(0)
+    e = m.egm
+    kp = np.asarray(e.keypoints, np.float64).copy()
+    ls = np.log2(kp[np.asarray(e.kp_mask), 2])
+    half = (ls.max() - ls.min()) / 510
+    kp[..., :2] += rng.uniform(-1 / 32, 1 / 32, kp[..., :2].shape)
+    kp[..., 2] *= np.exp2(rng.uniform(-half, half, kp.shape[:2]))
+    kp[..., 3] += rng.uniform(-np.pi / 256, np.pi / 256, kp.shape[:2])
+    X = np.asarray(e.points3d, np.float64)
+    step = (X.max(0) - X.min(0)) / 65535
+    X = X + rng.uniform(-step / 2, step / 2, X.shape)
+    params = jax.tree.map(lambda p: p * (1 + rng.uniform(-2 ** -11, 2 ** -11, p.shape)
+                                         ).astype(np.float32), m.ilm.fields.params)
+    moved = m.replace(
+        egm=e.replace(keypoints=jax.numpy.asarray(kp, np.float32),
+                      points3d=jax.numpy.asarray(X, np.float32)),
+        ilm=m.ilm.replace(fields=m.ilm.fields.replace(params=params)))
+    assert np.abs(egm_map.reprojection_errors(moved.egm)
+                  - egm_map.reprojection_errors(m.egm)).max() < 0.1
+    queries = load_scene("7scenes", small_synthetic_scene).queries().subset(np.arange(3))
+    cfg = localize.get_config("test")
+    a, _ = localize_scene(m, queries, cfg, progress=False, timed=False)
+    b, _ = localize_scene(moved, queries, cfg, progress=False, timed=False)
+    for ra, rb in zip(a, b, strict=True):
+        assert ra.success and rb.success
+        assert np.linalg.norm(np.asarray(ra.t) - np.asarray(rb.t)) < 0.005  # m
+        assert abs(int(ra.n_inliers) - int(rb.n_inliers)) <= max(3, 0.1 * int(ra.n_inliers))
