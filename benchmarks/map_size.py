@@ -5,14 +5,19 @@ way the field stores them, on the same scenes, plus an extrapolation to large sc
 
 The VRS map is what render-mode localization loads: ``map.json`` + ``egm.npz`` (3D points,
 keypoints and their point links, poses and intrinsics, global descriptors with the
-vocabulary) + ``ilm.npz`` (the NeRF weights). A descriptor map (the hierarchical method) is
-the same EGM plus one local descriptor per kept keypoint and no NeRF; it is reported with
-128-D descriptors at one byte per dimension (COLMAP stores SIFT as uint8), at float16 (hloc
-stores its features so; this is our real-patch map's descriptors.npz) and at float32. The
-scaling table extrapolates the measured bytes per reference image, per kept keypoint and per
-NeRF cluster to 7Scenes chess (4,000 reference images, one cluster) and Aachen (4,328
-images, 16 clusters) with the `paper` configuration's 1,024 keypoints kept per image and its
-NeRF, beside the paper's own table.
+vocabulary; quantised, see :mod:`vrs_jax.egm.map`) + ``ilm.npz`` (the NeRF weights,
+float16). A descriptor map (the hierarchical method) is the same EGM plus one local
+descriptor per kept keypoint and no NeRF; it is reported with 128-D descriptors at one byte
+per dimension (COLMAP stores SIFT as uint8), at float16 (hloc stores its features so; this is
+our real-patch map's descriptors.npz) and at float32.
+
+The scaling table extrapolates the measured bytes per reference image (poses, intrinsics),
+per global-descriptor dimension, per kept keypoint and per 3D point (with the measured points
+per keypoint), and per NeRF cluster, to 7Scenes chess (4,000 reference images, one cluster)
+and Aachen (4,328 images, 16 clusters) with the `paper` configuration (1,024 keypoints kept
+per image, 2048-D global descriptors, its NeRF); point indices are costed at the width the
+extrapolated point count needs (3 bytes there, 2 on the benchmark scenes). Beside the paper's
+own table.
 """
 
 from __future__ import annotations

@@ -6,11 +6,17 @@ A map folder holds::
                             from (dataset format, root, reader options, the query images held
                             out), image names, a SHA-256 and byte count per data file, stats
     MAPDIR/egm.npz          the EGM arrays (3D points, poses, intrinsics, keypoints linked to
-                            points, global descriptors and vocabulary); no local descriptors
+                            points, global descriptors and vocabulary), deflated; no local
+                            descriptors. Quantised (vrs_jax.egm.map, "arrays"): keypoint x, y
+                            as int8 steps of 1/16 px from the linked point's projection, log2
+                            scale and angle as uint8, point indices in the fewest bytes, 3D
+                            points as 16-32-bit fixed point, global descriptors as int8; all
+                            float32 again in memory
     MAPDIR/descriptors.npz  the real-patch descriptors of the EGM keypoints (float16, as hloc
                             stores them): what the real-patch mode matches against; the VRS
                             map (rendered patches) never reads it
-    MAPDIR/ilm.npz          the NeRFs, stacked per cluster, with each image's cluster
+    MAPDIR/ilm.npz          the NeRFs, stacked per cluster, with each image's cluster (weights
+                            as float16, float32 in memory)
     MAPDIR/nerf/            orbax training checkpoints (resume only; not part of the map)
 
 Loading checks everything before returning: kind, format version, every config field (an
