@@ -27,7 +27,7 @@ from vrs_jax import geometry
 from vrs_jax.egm.retrieval import Vocabulary
 from vrs_jax.errors import VrsError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: quantised keypoints, points, global descriptors
 KIND = "vrs-jax explicit geometric map"
 NPZ_NAME = "egm.npz"
 JSON_NAME = "egm.json"
