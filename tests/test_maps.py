@@ -182,3 +182,56 @@ def test_quantised_map_localizes_as_its_float_originals_would(tiny_map, small_sy
         assert ra.success and rb.success
         assert np.linalg.norm(np.asarray(ra.t) - np.asarray(rb.t)) < 0.005  # m
         assert abs(int(ra.n_inliers) - int(rb.n_inliers)) <= max(3, 0.1 * int(ra.n_inliers))
+
+
+def _format2_folder(m: maps.Map, d):
+    """``m`` written as format 2 wrote it (float32 keypoints and points, int32 links)."""
+    import io as io_
+
+    from vrs_jax import fileio
+    from vrs_jax.nerf import ilm as ilm_lib
+
+    e = m.egm
+    mask = np.asarray(e.kp_mask)
+    arrays = {"points3d": np.asarray(e.points3d), "R": np.asarray(e.R), "t": np.asarray(e.t),
+              "K": np.asarray(e.K), "dist": np.asarray(e.dist), "sizes": np.asarray(e.sizes),
+              "kp_counts": mask.sum(1).astype(np.int32),
+              "keypoints": np.asarray(e.keypoints)[mask],
+              "point_idx": np.asarray(e.point_idx)[mask],
+              "global_desc": np.asarray(e.global_desc, np.float16),
+              "vocab_centers": np.asarray(e.vocab.centers),
+              "vocab_power": np.asarray(e.vocab.power, np.float32)}
+    blobs = {}
+    for name, arr in (("egm.npz", arrays),
+                      ("descriptors.npz", {"local_desc": np.asarray(e.local_desc)[mask]
+                                           .astype(np.float16)})):
+        buf = io_.BytesIO()
+        np.savez(buf, **arr)
+        blobs[name] = buf.getvalue()
+    blobs["ilm.npz"] = ilm_lib.to_bytes(m.ilm)
+    d.mkdir(parents=True)
+    for name, b in blobs.items():
+        (d / name).write_bytes(b)
+    meta = {"kind": "vrs_jax.map", "format_version": 2, "config": configio.to_dict(m.config),
+            "source": configio.to_dict(m.source), "names": list(e.names), "k_max": e.k_max,
+            "files": {n: {"sha256": fileio.sha256(b), "bytes": len(b)}
+                      for n, b in blobs.items()}, "stats": {"kept": 1}}
+    (d / "map.json").write_text(json.dumps(meta))
+    return d
+
+
+def test_upgrade_rewrites_a_format2_map(tmp_path):
+    from vrs_jax.maps import upgrade
+
+    m = _map(descriptors=True)
+    old = _format2_folder(m, tmp_path / "old")
+    with pytest.raises(VrsError, match="format version 2") as e:
+        maps.load_map(old)
+    assert "map.json" in str(e.value)
+    assert upgrade.main([str(old), str(tmp_path / "new")]) == 0
+    back = maps.load_map(tmp_path / "new")
+    _assert_same(m.egm, back.egm)
+    assert back.config == m.config and maps.read_stats(tmp_path / "new") == {"kept": 1}
+    assert upgrade.main([str(tmp_path / "new"), str(tmp_path / "x")]) == 2  # not format 2
+    (old / "egm.npz").write_bytes(b"tampered")
+    assert upgrade.main([str(old), str(tmp_path / "y")]) == 2
