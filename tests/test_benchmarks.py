@@ -127,7 +127,7 @@ def test_map_size_parts_add_up(base, tiny_map, tmp_path):
     assert sum(s["egm_parts"].values()) == s["egm"]
     assert s["ratio"]["uint8"] == pytest.approx(s["descriptor_maps"]["uint8"] / s["vrs"])
     cfgs = {r["config"]: r for r in doc["nerf_configs"]}
-    assert cfgs["paper"]["bytes_per_cluster"] == 4 * cfgs["paper"]["params"]
+    assert cfgs["paper"]["bytes_per_cluster"] == 2 * cfgs["paper"]["params"]  # float16
     assert cfgs["paper"]["params"] > cfgs["cpu-small"]["params"] > cfgs["test"]["params"]
     chess = {r["scene"]: r for r in doc["scaling"]}["7scenes chess"]
     assert chess["images"] == 4000 and chess["ratio_float16"] > chess["ratio_uint8"] > 1

@@ -46,12 +46,31 @@ def _toy(n=3, m=40, k_max=16, baseline=False, seed=0, dist=True) -> M.EGM:
                       local_desc=lds if baseline else None)
 
 
+def _angle_diff(a, b):
+    return np.abs(np.mod(np.asarray(a, np.float64) - b + np.pi, 2 * np.pi) - np.pi)
+
+
 def _assert_same(a: M.EGM, b: M.EGM):
+    """``b`` is ``a`` after the storage round trip: exact where stored exactly, within the
+    quantisation bounds elsewhere."""
     assert a.names == b.names
-    for f in ("points3d", "R", "t", "K", "dist", "sizes", "keypoints", "point_idx", "kp_mask"):
+    for f in ("R", "t", "K", "dist", "sizes", "point_idx", "kp_mask"):
         np.testing.assert_array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)),
                                       err_msg=f)
-    np.testing.assert_allclose(a.global_desc, b.global_desc, atol=1e-3)  # float16 on disk
+    X, X2 = np.asarray(a.points3d, np.float64), np.asarray(b.points3d, np.float64)
+    extent = X.max(0) - X.min(0)
+    assert np.all(np.abs(X - X2) <= extent / (2 * 65535) + 1e-6)  # 16-bit fixed point
+    mask = np.asarray(a.kp_mask)
+    ka, kb = np.asarray(a.keypoints, np.float64)[mask], np.asarray(b.keypoints, np.float64)[mask]
+    assert np.abs(ka[:, :2] - kb[:, :2]).max() <= 1 / 32 + 1e-3  # float32 at a few 100 px
+    ls = np.log2(ka[:, 2])
+    assert np.abs(ls - np.log2(kb[:, 2])).max() <= (ls.max() - ls.min()) / 510 + 1e-5
+    assert _angle_diff(ka[:, 3], kb[:, 3]).max() <= np.pi / 256 + 1e-5
+    k32, pi32 = np.asarray(b.keypoints)[mask][:, 3], np.float32(np.pi)
+    assert np.all((k32 >= -pi32) & (k32 < pi32))  # [-pi, pi) as float32
+    ga, gb = np.asarray(a.global_desc), np.asarray(b.global_desc)
+    np.testing.assert_allclose(np.linalg.norm(gb, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(ga @ ga.T, gb @ gb.T, atol=1e-2)  # int8 on disk
     np.testing.assert_array_equal(a.vocab.centers, b.vocab.centers)
     assert (a.local_desc is None) == (b.local_desc is None)
     if a.local_desc is not None:
@@ -104,7 +123,7 @@ def test_reprojection_errors_of_exact_map_are_zero():
 def test_inconsistent_arrays_are_rejected():
     egm = _toy()
     arrays = M.to_arrays(egm)
-    arrays["point_idx"] = arrays["point_idx"] + 1000  # out of range
+    arrays["point_idx"] = M.pack_indices(np.full(len(arrays["kp_scale"]), 1000), 2000)
     with pytest.raises(VrsError, match="point index out of range") as e:
         M.from_arrays(arrays, egm.names, egm.k_max, Path("m/egm.npz"))
     assert "m/egm.npz" in str(e.value)
@@ -112,6 +131,90 @@ def test_inconsistent_arrays_are_rejected():
     del arrays["R"]
     with pytest.raises(VrsError, match="lack"):
         M.from_arrays(arrays, egm.names, egm.k_max, Path("m/egm.npz"))
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("kp_scale", lambda x: x.astype(np.int16), "kp_scale has dtype int16"),
+    ("kp_xy_res", lambda x: x.astype(np.float32), "kp_xy_res has dtype float32"),
+    ("point_idx", lambda x: x.astype(np.int64), "point_idx has dtype int64"),
+    ("points_q", lambda x: x[..., :1].astype(np.uint16), "points_q has dtype uint16"),
+    ("global_desc", lambda x: x.astype(np.float16), "global_desc has dtype float16"),
+    ("kp_angle", lambda x: x[:-1], "keypoints/point_idx do not match the counts"),
+    ("kp_xy_exact_idx", lambda x: np.array([10 ** 6], np.uint32), "exact keypoint positions"),
+    ("points_step", lambda x: -x, "positive step"),
+    ("kp_log2_scale_range", lambda x: np.array([0, np.nan], np.float32), "scale range"),
+])
+def test_ill_typed_or_tampered_arrays_fail_in_one_line(key, value, match):
+    egm = _toy()
+    arrays = M.to_arrays(egm)
+    arrays[key] = value(arrays[key])
+    with pytest.raises(VrsError, match=match) as e:
+        M.from_arrays(arrays, egm.names, egm.k_max, Path("m/egm.npz"))
+    assert "m/egm.npz" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_keypoints_off_their_projection_round_trip_within_bounds():
+    """Keypoints 0-6 px from their point's projection (residual int8 at 1/16 px) and a few
+    far off (stored exactly): positions within 1/32 px, scale and angle within half a
+    level, against the float64 originals."""
+    egm = _toy(n=4, m=300, k_max=200, seed=3)
+    rng = np.random.default_rng(1)
+    mask = np.asarray(egm.kp_mask)
+    kp = np.asarray(egm.keypoints).copy()
+    kp[..., :2] += np.where(mask[..., None], rng.uniform(-6, 6, kp[..., :2].shape), 0)
+    kp[0, :3, :2] += 40.0  # residual beyond int8 at 1/16 px
+    kp[..., 2] = np.where(mask, np.exp2(rng.uniform(-1, 6, mask.shape)), 1.0)
+    kp[..., 3] = np.where(mask, rng.uniform(-np.pi, np.pi, mask.shape), 0.0)
+    egm = egm.replace(keypoints=jnp.asarray(kp))
+    a = M.to_arrays(egm)
+    assert len(a["kp_xy_exact_idx"]) == 3 and a["kp_xy_res"].dtype == np.int8
+    assert a["point_idx"].shape == (mask.sum(), 2)  # 300 points: two bytes
+    assert a["points_q"].shape == (300, 3, 2)
+    back = M.from_arrays(a, egm.names, egm.k_max, Path("x"))
+    _assert_same(egm, back)
+    # the map's links reproject as before, to within the keypoint and point quantisation
+    e0, e1 = M.reprojection_errors(egm), M.reprojection_errors(back)
+    assert np.abs(e0 - e1).max() <= 1 / 32 * np.sqrt(2) + M.POINT_MAX_PX + 1e-3
+
+
+def test_points_take_more_bytes_when_two_would_move_projections():
+    """A point 100 km away stretches the box: 16-bit steps (1.5 m) would move the near points'
+    projections by pixels, so more bytes are used and no projection moves > POINT_MAX_PX."""
+    egm = _toy(m=40)
+    X = np.asarray(egm.points3d).copy()
+    X[0] = [1e5, 0, 4]
+    egm = egm.replace(points3d=jnp.asarray(X))
+    a = M.to_arrays(egm)
+    assert a["points_q"].shape[2] > 2
+    back = M.from_arrays(a, egm.names, egm.k_max, Path("x"))
+    img, slot, pts = M.observations(egm)
+    moved = np.abs(
+        M.link_projections(back.points3d, egm.R, egm.t, egm.K, egm.dist, img, pts)
+        - M.link_projections(egm.points3d, egm.R, egm.t, egm.K, egm.dist, img, pts))
+    assert moved.max() <= M.POINT_MAX_PX + 1e-3
+
+
+def test_link_projections_match_geometry_project():
+    egm = _toy()
+    img, slot, pts = M.observations(egm)
+    uv = M.link_projections(egm.points3d, egm.R, egm.t, egm.K, egm.dist, img, pts)
+    for i in range(egm.num_images):
+        ref, _ = g.project(np.asarray(egm.K[i], np.float64), np.asarray(egm.R[i], np.float64),
+                           np.asarray(egm.t[i], np.float64),
+                           np.asarray(egm.points3d, np.float64)[pts[img == i]],
+                           np.asarray(egm.dist[i], np.float64))
+        np.testing.assert_allclose(uv[img == i], ref, atol=1e-6)
+
+
+@pytest.mark.parametrize("n, nbytes", [(1, 1), (256, 1), (257, 2), (65536, 2), (65537, 3),
+                                       (2 ** 24 + 1, 4)])
+def test_pack_indices_uses_the_fewest_bytes(n, nbytes):
+    idx = np.unique(np.r_[0, n - 1, np.random.default_rng(0).integers(0, n, 50)])
+    b = M.pack_indices(idx, n)
+    assert b.dtype == np.uint8 and b.shape == (len(idx), nbytes)
+    np.testing.assert_array_equal(M.unpack_indices(b), idx)
+    # the same bytes numpy writes for the natural little-endian integer
+    np.testing.assert_array_equal(b, idx.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :nbytes])
 
 
 def test_npz_parts_add_up():
@@ -122,8 +225,9 @@ def test_npz_parts_add_up():
     parts = M.npz_parts(raw)
     assert sum(parts.values()) == len(raw)
     links = int(np.asarray(egm.kp_mask).sum())
-    assert parts["keypoints+links"] >= links * (16 + 4)
-    assert parts["points3d"] >= egm.num_points * 12
+    assert parts["keypoints"] >= links * 4  # int8 x, y residual, uint8 scale and angle
+    assert parts["links"] >= links  # one byte per point index (40 points)
+    assert parts["points3d"] >= egm.num_points * 6  # 16-bit fixed point
     assert parts["local descriptors"] >= links * 8 * 2  # float16
     with zipfile.ZipFile(io.BytesIO(raw)) as z:
         assert all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())

@@ -9,7 +9,7 @@ import json
 import jax
 import numpy as np
 import pytest
-from test_egm_map import _toy
+from test_egm_map import _assert_same, _toy
 from test_nerf_ilm import _ilm
 
 from vrs_jax import configio, maps
@@ -46,8 +46,11 @@ def test_save_load_roundtrip(tmp_path, descriptors):
     assert back.has_descriptors == descriptors and back.names == m.names
     np.testing.assert_array_equal(back.cluster, m.cluster)
     for a, b in zip(jax.tree.leaves(m.ilm), jax.tree.leaves(back.ilm), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_array_equal(back.egm.keypoints, m.egm.keypoints)
+        a, b = np.asarray(a), np.asarray(b)
+        assert b.dtype == a.dtype
+        # the NeRF weights are stored as float16 (maps.map.NERF_FLOAT16), the rest exactly
+        assert np.array_equal(a, b) or np.array_equal(a.astype(np.float16).astype(a.dtype), b)
+    _assert_same(m.egm, back.egm)
     assert maps.read_stats(tmp_path / "m") == {"note": 1}
     assert not list((tmp_path / "m").glob("*.tmp"))
     b = maps.map_bytes(tmp_path / "m")
@@ -151,3 +154,95 @@ def test_named_localize_config_comments_match_values():
             cpu.narrow_fine, cpu.guided_passes) == (3, 1024, True, 16, 8, 1)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
+
+def test_quantised_map_localizes_as_its_float_originals_would(tiny_map, small_synthetic_scene):
+    """The stored map is a quantised copy of the float32 map it was built from: every
+    keypoint, scale, angle, 3D point and NeRF weight within its storage bound of the value
+    loaded. A map moved by those bounds (another float32 map that stores to the same bytes)
+    localizes the queries to the same poses in render mode, which reads all of them."""
+    from vrs_jax import localize
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.egm import map as egm_map
+    from vrs_jax.localize.batch import localize_scene
+
+    m = maps.load_map(tiny_map).without_descriptors()
+    rng = np.random.default_rng(0)
+    e = m.egm
+    kp = np.asarray(e.keypoints, np.float64).copy()
+    ls = np.log2(kp[np.asarray(e.kp_mask), 2])
+    half = (ls.max() - ls.min()) / 510
+    kp[..., :2] += rng.uniform(-1 / 32, 1 / 32, kp[..., :2].shape)
+    kp[..., 2] *= np.exp2(rng.uniform(-half, half, kp.shape[:2]))
+    kp[..., 3] += rng.uniform(-np.pi / 256, np.pi / 256, kp.shape[:2])
+    X = np.asarray(e.points3d, np.float64)
+    step = (X.max(0) - X.min(0)) / 65535
+    X = X + rng.uniform(-step / 2, step / 2, X.shape)
+    params = jax.tree.map(lambda p: p * (1 + rng.uniform(-2 ** -11, 2 ** -11, p.shape)
+                                         ).astype(np.float32), m.ilm.fields.params)
+    moved = m.replace(
+        egm=e.replace(keypoints=jax.numpy.asarray(kp, np.float32),
+                      points3d=jax.numpy.asarray(X, np.float32)),
+        ilm=m.ilm.replace(fields=m.ilm.fields.replace(params=params)))
+    assert np.abs(egm_map.reprojection_errors(moved.egm)
+                  - egm_map.reprojection_errors(m.egm)).max() < 0.1
+    queries = load_scene("7scenes", small_synthetic_scene).queries().subset(np.arange(3))
+    cfg = localize.get_config("test")
+    a, _ = localize_scene(m, queries, cfg, progress=False, timed=False)
+    b, _ = localize_scene(moved, queries, cfg, progress=False, timed=False)
+    for ra, rb in zip(a, b, strict=True):
+        assert ra.success and rb.success
+        assert np.linalg.norm(np.asarray(ra.t) - np.asarray(rb.t)) < 0.005  # m
+        assert abs(int(ra.n_inliers) - int(rb.n_inliers)) <= max(3, 0.1 * int(ra.n_inliers))
+
+
+def _format2_folder(m: maps.Map, d):
+    """``m`` written as format 2 wrote it (float32 keypoints and points, int32 links)."""
+    import io as io_
+
+    from vrs_jax import fileio
+    from vrs_jax.nerf import ilm as ilm_lib
+
+    e = m.egm
+    mask = np.asarray(e.kp_mask)
+    arrays = {"points3d": np.asarray(e.points3d), "R": np.asarray(e.R), "t": np.asarray(e.t),
+              "K": np.asarray(e.K), "dist": np.asarray(e.dist), "sizes": np.asarray(e.sizes),
+              "kp_counts": mask.sum(1).astype(np.int32),
+              "keypoints": np.asarray(e.keypoints)[mask],
+              "point_idx": np.asarray(e.point_idx)[mask],
+              "global_desc": np.asarray(e.global_desc, np.float16),
+              "vocab_centers": np.asarray(e.vocab.centers),
+              "vocab_power": np.asarray(e.vocab.power, np.float32)}
+    blobs = {}
+    for name, arr in (("egm.npz", arrays),
+                      ("descriptors.npz", {"local_desc": np.asarray(e.local_desc)[mask]
+                                           .astype(np.float16)})):
+        buf = io_.BytesIO()
+        np.savez(buf, **arr)
+        blobs[name] = buf.getvalue()
+    blobs["ilm.npz"] = ilm_lib.to_bytes(m.ilm)
+    d.mkdir(parents=True)
+    for name, b in blobs.items():
+        (d / name).write_bytes(b)
+    meta = {"kind": "vrs_jax.map", "format_version": 2, "config": configio.to_dict(m.config),
+            "source": configio.to_dict(m.source), "names": list(e.names), "k_max": e.k_max,
+            "files": {n: {"sha256": fileio.sha256(b), "bytes": len(b)}
+                      for n, b in blobs.items()}, "stats": {"kept": 1}}
+    (d / "map.json").write_text(json.dumps(meta))
+    return d
+
+
+def test_upgrade_rewrites_a_format2_map(tmp_path):
+    from vrs_jax.maps import upgrade
+
+    m = _map(descriptors=True)
+    old = _format2_folder(m, tmp_path / "old")
+    with pytest.raises(VrsError, match="format version 2") as e:
+        maps.load_map(old)
+    assert "map.json" in str(e.value)
+    assert upgrade.main([str(old), str(tmp_path / "new")]) == 0
+    back = maps.load_map(tmp_path / "new")
+    _assert_same(m.egm, back.egm)
+    assert back.config == m.config and maps.read_stats(tmp_path / "new") == {"kept": 1}
+    assert upgrade.main([str(tmp_path / "new"), str(tmp_path / "x")]) == 2  # not format 2
+    (old / "egm.npz").write_bytes(b"tampered")
+    assert upgrade.main([str(old), str(tmp_path / "y")]) == 2

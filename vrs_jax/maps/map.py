@@ -6,11 +6,17 @@ A map folder holds::
                             from (dataset format, root, reader options, the query images held
                             out), image names, a SHA-256 and byte count per data file, stats
     MAPDIR/egm.npz          the EGM arrays (3D points, poses, intrinsics, keypoints linked to
-                            points, global descriptors and vocabulary); no local descriptors
+                            points, global descriptors and vocabulary), deflated; no local
+                            descriptors. Quantised (vrs_jax.egm.map, "arrays"): keypoint x, y
+                            as int8 steps of 1/16 px from the linked point's projection, log2
+                            scale and angle as uint8, point indices in the fewest bytes, 3D
+                            points as 16-32-bit fixed point, global descriptors as int8; all
+                            float32 again in memory
     MAPDIR/descriptors.npz  the real-patch descriptors of the EGM keypoints (float16, as hloc
                             stores them): what the real-patch mode matches against; the VRS
                             map (rendered patches) never reads it
-    MAPDIR/ilm.npz          the NeRFs, stacked per cluster, with each image's cluster
+    MAPDIR/ilm.npz          the NeRFs, stacked per cluster, with each image's cluster (weights
+                            as float16, float32 in memory)
     MAPDIR/nerf/            orbax training checkpoints (resume only; not part of the map)
 
 Loading checks everything before returning: kind, format version, every config field (an
@@ -39,11 +45,16 @@ from vrs_jax.nerf import ilm as ilm_lib
 from vrs_jax.nerf.ilm import ILM
 
 KIND = "vrs_jax.map"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 META = "map.json"
 EGM_FILE = "egm.npz"
 DESC_FILE = "descriptors.npz"
 ILM_FILE = "ilm.npz"
+# egm.npz members deflated (the quantised keypoint residuals, scales and angles compress).
+EGM_COMPRESSED = True
+# NeRF weights stored as float16 (read back as float32): renders differ from float32 weights'
+# by far less than the field's own error (README, "Map size").
+NERF_FLOAT16 = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,9 +112,9 @@ class Map:
 # ----------------------------------------------------------------------------- save
 
 
-def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+def _npz(arrays: dict[str, np.ndarray], compressed: bool = False) -> bytes:
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    (np.savez_compressed if compressed else np.savez)(buf, **arrays)
     return buf.getvalue()
 
 
@@ -111,7 +122,7 @@ def save_map(m: Map, folder: str | Path, stats: dict | None = None) -> Path:
     """Write ``m`` into ``folder`` (data files first, each atomically; ``map.json`` last, so a
     folder whose ``map.json`` is readable is complete). Returns the folder."""
     d = fileio.check_writable(folder)
-    blobs = {EGM_FILE: _npz(egm_map.to_arrays(m.egm))}
+    blobs = {EGM_FILE: _npz(egm_map.to_arrays(m.egm), compressed=EGM_COMPRESSED)}
     if m.has_descriptors:
         blobs[DESC_FILE] = _npz(egm_map.descriptor_arrays(m.egm))
     if m.ilm is not None:
@@ -119,7 +130,7 @@ def save_map(m: Map, folder: str | Path, stats: dict | None = None) -> Path:
             raise VrsError("the NeRF map and the EGM list different reference images", d)
         if m.ilm.config != m.config.nerf:
             raise VrsError("the NeRF was trained with another config than the map's", d)
-        blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm)
+        blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm, float16=NERF_FLOAT16)
     for name, data in blobs.items():
         fileio.write_bytes(d / name, data)
     for name in {DESC_FILE, ILM_FILE} - set(blobs):
@@ -243,9 +254,13 @@ def map_bytes(folder: str | Path) -> dict[str, Any]:
     size = {name: rec["bytes"] for name, rec in meta["files"].items()}
     js = (d / META).stat().st_size
     egm_b, ilm_b, desc_b = size.get(EGM_FILE, 0), size.get(ILM_FILE, 0), size.get(DESC_FILE, 0)
-    n_kp = int(np.sum(_npz_arrays(_read_checked(d, EGM_FILE, meta), d / EGM_FILE)["kp_counts"]))
+    raw = _read_checked(d, EGM_FILE, meta)
+    counts = _npz_arrays(raw, d / EGM_FILE).get("kp_counts")
+    if counts is None:
+        raise VrsError("map arrays lack ['kp_counts']", d / EGM_FILE)
+    n_kp = int(np.sum(counts))
     dim = configio.from_dict(MapConfig, meta["config"], d / META).features.descriptor.dim
     return {"vrs": js + egm_b + ilm_b, "real": js + egm_b + desc_b, "metadata": js,
             "egm": egm_b, "ilm": ilm_b, "descriptors": desc_b,
             "descriptors_uint8": n_kp * dim,
-            "egm_parts": egm_map.npz_parts((d / EGM_FILE).read_bytes())}
+            "egm_parts": egm_map.npz_parts(raw)}
