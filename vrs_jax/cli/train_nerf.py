@@ -14,7 +14,7 @@ once per process, all with the same --out on a shared file system, adding
 ``--coordinator HOST0:PORT --num-processes N --process-id I`` (I = 0..N-1; HOST0 runs
 process 0). Each process trains its shard of the clusters (use a multiple of N clusters);
 orbax writes the checkpoints from all processes; process 0 writes the map, renders, metrics.
-
+"""
 
 from __future__ import annotations
 
@@ -90,9 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_run(args)
     multi = init_distributed(args)
-    from vrs_jax.nerf import distributed
+    from vrs_jax.nerf import distributed, render
     from vrs_jax.nerf import ilm as ilm_lib
-    from vrs_jax.nerf import render
     from vrs_jax.nerf import train as T
     from vrs_jax.nerf.config import get_config, parse_overrides
 
