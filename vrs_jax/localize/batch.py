@@ -129,10 +129,9 @@ def make_localize_batch(cfg: LocalizeConfig, mesh: Mesh | None = None
     vmapped = jax.vmap(lambda m, q: _localize(m, q, cfg), in_axes=(None, 0))
     if mesh is None or mesh.size == 1:
         return jax.jit(vmapped)
-    spec = PartitionSpec(QUERY_AXIS)
-    sharded = jax.shard_map(vmapped, mesh=mesh, in_specs=(PartitionSpec(), spec),
-                            out_specs=spec, check_vma=False)
-    return jax.jit(sharded)
+    rows = NamedSharding(mesh, PartitionSpec(QUERY_AXIS))
+    return jax.jit(vmapped, in_shardings=(NamedSharding(mesh, PartitionSpec()), rows),
+                   out_shardings=rows)
 
 
 def localize_batch(m: Map, q: Query, cfg: LocalizeConfig, mesh: Mesh | None = None
