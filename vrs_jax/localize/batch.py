@@ -145,8 +145,13 @@ def localize_batch(m: Map, q: Query, cfg: LocalizeConfig, mesh: Mesh | None = No
     if mesh is None or mesh.size == 1:
         return make_localize_batch(cfg, None)(m, q)
     b = int(q.K.shape[0])
-    qp, _ = pad_queries(q, mesh.size)
-    m = jax.device_put(m, NamedSharding(mesh, PartitionSpec()))
-    qp = jax.device_put(qp, NamedSharding(mesh, PartitionSpec(QUERY_AXIS)))
+    m, qp = place(m, pad_queries(q, mesh.size)[0], mesh)
     out = make_localize_batch(cfg, mesh)(m, qp)
     return jax.tree.map(lambda x: x[:b], out)
+
+
+def place(m: Map, q: Query, mesh: Mesh) -> tuple[Map, Query]:
+    """The map replicated on every device of ``mesh``, the (padded) batch split along its
+    query axis. A map already placed so is not copied again."""
+    return (jax.device_put(m, NamedSharding(mesh, PartitionSpec())),
+            jax.device_put(q, NamedSharding(mesh, PartitionSpec(QUERY_AXIS))))

@@ -24,6 +24,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
@@ -117,6 +118,7 @@ class Localizer:
         else:
             self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real")
         self.mesh = batch_lib.query_mesh(devices)
+        self._placed_map: Map | None = None
 
     # ------------------------------------------------------------------ preparation
 
@@ -210,8 +212,11 @@ class Localizer:
                 errors[i] = str(e)
         results: list[LocalizeResult | None] = [None] * n
         if queries:
+            if self._placed_map is None:  # the map replicated on the mesh, once
+                self._placed_map = (self.map if self.mesh.size == 1 else jax.device_put(
+                    self.map, NamedSharding(self.mesh, PartitionSpec())))
             batch = jax.device_get(batch_lib.localize_batch(
-                self.map, stack_queries(queries), self.cfg, self.mesh))
+                self._placed_map, stack_queries(queries), self.cfg, self.mesh))
             for j, i in enumerate(ok):
                 results[i] = jax.tree.map(lambda x, j=j: x[j], batch)
         return results, errors
