@@ -25,6 +25,8 @@ from vrs_jax.nerf.toy import make_toy_scene
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
+# evaluation, checkpoints and metric reads mid-run (every 3 steps): the collective paths
+EVERY = {"eval_every": 3, "checkpoint_every": 3, "log_every": 3}
 
 
 def _toy_dataset(root: Path) -> Path:
@@ -56,6 +58,7 @@ def test_two_processes_train_the_same_map_as_one(tmp_path):
     args = [sys.executable, "-m", "experiments.train_nerf", "--format", "nerf", "--root",
             str(root), "--query-every", "4", "--near", "2", "--far", "6", "--config", "test",
             "--clusters", "2", "--steps", str(STEPS), "--views", "1", "--quiet",
+            "--minutes", "10", *[a for k, v in EVERY.items() for a in ("--set", f"{k}={v}")],
             "--out", str(out), "--coordinator", f"localhost:{port}", "--num-processes", "2"]
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
     env.pop("XLA_FLAGS", None)  # one CPU device per process
@@ -63,7 +66,7 @@ def test_two_processes_train_the_same_map_as_one(tmp_path):
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for i in range(2)]
     # Meanwhile, the single-process reference: same scene, config, seed and steps.
-    cfg = get_config("test", n_clusters=2)
+    cfg = get_config("test", n_clusters=2, **EVERY)
     scene = load_scene("nerf", root, query_every=4)
     ref = T.train(T.prepare(scene, cfg, near=2.0, far=6.0), None, steps=STEPS, progress=False)
     logs = []
@@ -79,7 +82,8 @@ def test_two_processes_train_the_same_map_as_one(tmp_path):
     assert "process 0 of 2: 1 local / 2 global device(s)" in logs[0]
     assert "process 1 of 2" in logs[1]
     # Both processes wrote one orbax checkpoint together; process 0 wrote the map.
-    assert (out / "checkpoints" / str(STEPS) / "commit_success.txt").is_file()
+    for step in (3, STEPS):
+        assert (out / "checkpoints" / str(step) / "commit_success.txt").is_file()
     two = load_ilm(out / "ilm.npz")
     a, b = jax.tree.leaves(ref.ilm.fields.params), jax.tree.leaves(two.fields.params)
     assert len(a) == len(b)
@@ -94,7 +98,10 @@ def test_two_processes_train_the_same_map_as_one(tmp_path):
     assert swapped > 50 * diff  # the comparison tells the clusters apart
     m = json.loads((out / "metrics.json").read_text())
     assert m["steps"] == STEPS
-    assert abs(m["history"][-1]["loss"] - ref.history[-1]["loss"]) < 1e-3
+    assert [h["step"] for h in m["history"]] == [h["step"] for h in ref.history] == [3, 6]
+    for h2, h1 in zip(m["history"], ref.history, strict=True):
+        assert abs(h2["loss"] - h1["loss"]) < 1e-3
+        assert abs(h2["heldout_psnr"] - h1["heldout_psnr"]) < 0.05
 
 
 def test_single_process_and_bad_settings(monkeypatch):
