@@ -35,10 +35,14 @@ _SCRIPT = textwrap.dedent("""
                                 for i in range(3)])  # 3 queries: padded to 4 on 2 devices
     ref = jax.device_get(B.localize_batch(m, q, cfg))
     mesh = B.query_mesh(2)
-    padded = B.make_localize_batch(cfg, mesh)(m, B.pad_queries(q, 2)[0])
-    assert padded.R.shape[0] == 4 and len(padded.R.sharding.device_set) == 2
-    assert padded.R.addressable_shards[0].data.shape[0] == 2  # two queries per device
+    placed = B.place_map(m, mesh)
+    assert [jax.tree.leaves(p)[0].devices() for p in placed] == [{d} for d in jax.devices()]
+    q4 = jax.tree.map(lambda x: np.concatenate([x, x[:1]]), q)
+    four = B.localize_batch(placed, q4, cfg, mesh)
+    assert len(four.R.sharding.device_set) == 2  # two queries per device
+    assert four.R.addressable_shards[0].data.shape[0] == 2
     sh = jax.device_get(B.localize_batch(m, q, cfg, mesh))
+    np.testing.assert_allclose(np.asarray(four.R)[:3], sh.R, atol=1e-5)
     for k in ("R", "t", "success", "fallback", "n_inliers", "n_matches", "retrieved"):
         a, b = np.asarray(getattr(ref, k)), np.asarray(getattr(sh, k))
         assert a.shape == b.shape and a.shape[0] == 3, (k, a.shape, b.shape)

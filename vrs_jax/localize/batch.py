@@ -6,9 +6,9 @@ run goes on with the others.
 
 Batches (:func:`localize_batch`): ``jax.vmap(localize)`` over a stacked batch of queries
 (``query.stack_queries``). With a mesh of several devices the query axis is split over them
-with ``jax.shard_map`` (the map replicated on every device; queries never interact, so each
-device localizes its own slice with no communication). The batch is padded to a multiple of
-the device count by repeating its last query; the padding rows are dropped from the result.
+(the map copied to every device; queries never interact, so each device localizes its own
+slice with no communication). The batch is padded to a multiple of the device count by
+repeating its last query; the padding rows are dropped from the result.
 """
 
 from __future__ import annotations
@@ -118,40 +118,49 @@ def pad_queries(q: Query, multiple: int) -> tuple[Query, np.ndarray]:
 
 
 @functools.lru_cache(maxsize=16)
-def make_localize_batch(cfg: LocalizeConfig, mesh: Mesh | None = None
-                        ) -> Callable[[Map, Query], LocalizeResult]:
-    """The jitted batched ``localize``: ``(map, queries [B, ...]) -> LocalizeResult [B, ...]``.
+def make_localize_batch(cfg: LocalizeConfig) -> Callable[[Map, Query], LocalizeResult]:
+    """The jitted batched ``localize``: ``(map, queries [B, ...]) -> LocalizeResult [B, ...]``
+    (``jit(vmap(localize))``; runs on the device its inputs are on)."""
+    return jax.jit(jax.vmap(lambda m, q: _localize(m, q, cfg), in_axes=(None, 0)))
 
-    ``mesh``: None or one device: ``jit(vmap(localize))`` (no sharding). Several devices:
-    ``shard_map`` over the mesh's query axis, the map replicated; B must then be a multiple of
-    the mesh size (:func:`pad_queries`).
+
+def place_map(m: Map, mesh: Mesh) -> list[Map]:
+    """One copy of the map on each device of ``mesh`` (a long-lived caller keeps them)."""
+    return [jax.device_put(m, d) for d in mesh.devices.flat]
+
+
+def localize_batch(m: Map | list[Map], q: Query, cfg: LocalizeConfig,
+                   mesh: Mesh | None = None) -> LocalizeResult:
+    """Localize a stacked batch of B queries (``stack_queries``), its query axis sharded over
+    the devices of ``mesh`` (None or one device: unsharded).
+
+    Args:
+      m: the map, or its per-device copies (:func:`place_map`, to skip the copies per call).
+      q: Query [B, ...]; padded here to a multiple of the device count.
+    Returns:
+      LocalizeResult [B, ...]: device arrays, split along the query axis
+      (``NamedSharding(mesh, P("queries"))``) when sharded.
+
+    Each device localizes its contiguous slice of the padded batch with the jitted vmapped
+    ``localize``, all dispatched asynchronously (the devices run concurrently) and assembled
+    into one sharded array: no collective, no cross-device step. (Not one SPMD program:
+    ``jax.shard_map`` breaks optimistix's LM solve in the pose refinement, and under GSPMD
+    the RANSAC host callback is placed on the first device, the batch gathered there, and
+    forced CPU devices could deadlock in that exchange.)
     """
-    vmapped = jax.vmap(lambda m, q: _localize(m, q, cfg), in_axes=(None, 0))
+    fn = make_localize_batch(cfg)
     if mesh is None or mesh.size == 1:
-        return jax.jit(vmapped)
-    rows = NamedSharding(mesh, PartitionSpec(QUERY_AXIS))
-    return jax.jit(vmapped, in_shardings=(NamedSharding(mesh, PartitionSpec()), rows),
-                   out_shardings=rows)
-
-
-def localize_batch(m: Map, q: Query, cfg: LocalizeConfig, mesh: Mesh | None = None
-                   ) -> LocalizeResult:
-    """Localize a stacked batch of B queries (``stack_queries``), sharded over the devices of
-    ``mesh`` (None or one device: unsharded). Returns LocalizeResult [B, ...] (device arrays).
-
-    The map is placed replicated and the padded batch split along its leading axis; compiled
-    once per (padded batch size, mesh).
-    """
-    if mesh is None or mesh.size == 1:
-        return make_localize_batch(cfg, None)(m, q)
+        return fn(m[0] if isinstance(m, list) else m, q)
+    n = mesh.size
     b = int(q.K.shape[0])
-    m, qp = place(m, pad_queries(q, mesh.size)[0], mesh)
-    out = make_localize_batch(cfg, mesh)(m, qp)
+    qp, _ = pad_queries(q, n)
+    per = int(qp.K.shape[0]) // n
+    maps_ = m if isinstance(m, list) else place_map(m, mesh)
+    outs = []
+    for i, d in enumerate(mesh.devices.flat):
+        qi = jax.device_put(jax.tree.map(lambda x, i=i: x[i * per:(i + 1) * per], qp), d)
+        outs.append(fn(maps_[i], qi))
+    rows = NamedSharding(mesh, PartitionSpec(QUERY_AXIS))
+    out = jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
+        (n * xs[0].shape[0],) + xs[0].shape[1:], rows, list(xs)), *outs)
     return jax.tree.map(lambda x: x[:b], out)
-
-
-def place(m: Map, q: Query, mesh: Mesh) -> tuple[Map, Query]:
-    """The map replicated on every device of ``mesh``, the (padded) batch split along its
-    query axis. A map already placed so is not copied again."""
-    return (jax.device_put(m, NamedSharding(mesh, PartitionSpec())),
-            jax.device_put(q, NamedSharding(mesh, PartitionSpec(QUERY_AXIS))))

@@ -24,7 +24,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
 
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
@@ -118,7 +117,7 @@ class Localizer:
         else:
             self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real")
         self.mesh = batch_lib.query_mesh(devices)
-        self._placed_map: Map | None = None
+        self._placed_map: Map | list[Map] | None = None
 
     # ------------------------------------------------------------------ preparation
 
@@ -212,9 +211,9 @@ class Localizer:
                 errors[i] = str(e)
         results: list[LocalizeResult | None] = [None] * n
         if queries:
-            if self._placed_map is None:  # the map replicated on the mesh, once
-                self._placed_map = (self.map if self.mesh.size == 1 else jax.device_put(
-                    self.map, NamedSharding(self.mesh, PartitionSpec())))
+            if self._placed_map is None:  # the map on every device of the mesh, once
+                self._placed_map = (self.map if self.mesh.size == 1 else
+                                    batch_lib.place_map(self.map, self.mesh))
             batch = jax.device_get(batch_lib.localize_batch(
                 self._placed_map, stack_queries(queries), self.cfg, self.mesh))
             for j, i in enumerate(ok):
