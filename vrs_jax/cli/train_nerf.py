@@ -8,6 +8,12 @@ Writes into --out only:
   ilm.npz           the trained map (vrs_jax.nerf.ilm)
   renders/NAME.png  rendered | real, side by side, for the held-out views (or --views)
   metrics.json      config, training history, per-view PSNR / SSIM, timings
+
+Multi-process / multi-host (JAX's own runtime, ``jax.distributed``): start the same command
+once per process, all with the same --out on a shared file system, adding
+``--coordinator HOST0:PORT --num-processes N --process-id I`` (I = 0..N-1; HOST0 runs
+process 0). Each process trains its shard of the clusters (use a multiple of N clusters);
+orbax writes the checkpoints from all processes; process 0 writes the map, renders, metrics.
 """
 
 from __future__ import annotations
@@ -41,17 +47,51 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render at most N held-out views (default: all; training views if "
                         "there are no held-out ones)")
     p.add_argument("--no-resume", action="store_true", help="ignore existing checkpoints")
+    add_distributed_args(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
+
+
+def add_distributed_args(p: argparse.ArgumentParser) -> None:
+    """--coordinator / --num-processes / --process-id / --local-devices (jax.distributed)."""
+    g = p.add_argument_group(
+        "multi-process training (jax.distributed; one process per host or per GPU)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="address of process 0's coordinator service, the same for every "
+                        "process (default: $JAX_COORDINATOR_ADDRESS)")
+    g.add_argument("--num-processes", type=int, default=None, metavar="N",
+                   help="number of processes (default: $JAX_NUM_PROCESSES, else 1: a "
+                        "single-process run)")
+    g.add_argument("--process-id", type=int, default=None, metavar="I",
+                   help="this process's index 0..N-1 (default: $JAX_PROCESS_ID)")
+    g.add_argument("--local-devices", default=None, metavar="IDS",
+                   help="comma-separated local device ids this process uses (e.g. 0 for one "
+                        "GPU per process; default: all visible devices)")
+
+
+def init_distributed(args: argparse.Namespace) -> bool:
+    """Start jax.distributed from the parsed flags (before any JAX computation); True when
+    this is a multi-process run."""
+    from vrs_jax.nerf import distributed
+
+    ids = None
+    if args.local_devices:
+        try:
+            ids = [int(x) for x in args.local_devices.split(",")]
+        except ValueError:
+            raise VrsError(f"--local-devices {args.local_devices!r}: expected comma-separated "
+                           "integers") from None
+    return distributed.initialize(args.coordinator, args.num_processes, args.process_id, ids)
 
 
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_run(args)
+    multi = init_distributed(args)
+    from vrs_jax.nerf import distributed, render
     from vrs_jax.nerf import ilm as ilm_lib
-    from vrs_jax.nerf import render
     from vrs_jax.nerf import train as T
     from vrs_jax.nerf.config import get_config, parse_overrides
 
@@ -66,12 +106,21 @@ def main(argv: list[str] | None = None) -> int:
     fileio.check_writable(out)  # before any work starts
     scene = load_scene_from_args(args)
     prep = T.prepare(scene, cfg, near=args.near, far=args.far)
-    print(f"{len(prep.refs)} training / {len(prep.held_out)} held-out images, "
+    primary = distributed.is_primary()
+    if multi:
+        import jax
+
+        print(f"process {jax.process_index()} of {jax.process_count()}: "
+              f"{len(jax.local_devices())} local / {len(jax.devices())} global device(s)")
+    if primary:
+        print(f"{len(prep.refs)} training / {len(prep.held_out)} held-out images, "
           f"{cfg.n_clusters} cluster(s), near/far {float(prep.near.min()):.3g}.."
-          f"{float(prep.far.max()):.3g}, config {cfg.name}")
+              f"{float(prep.far.max()):.3g}, config {cfg.name}")
     res = T.train(prep, out, steps=args.steps, minutes=args.minutes,
                   resume=not args.no_resume, progress=not args.quiet,
                   log=(lambda _: None) if args.quiet else None)
+    if not primary:  # the map, renders and reports are process 0's
+        return 0
     ilm_path = ilm_lib.save_ilm(out / "ilm.npz", res.ilm)
 
     views, images, near, far = prep.held_out, prep.held_images, prep.held_near, prep.held_far

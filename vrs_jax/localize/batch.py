@@ -3,29 +3,40 @@
 Query preparation runs on the host per image; ``localize`` is compiled once (first query) and
 reused for all. A query image that cannot be read is flagged in its result (``error``) and the
 run goes on with the others.
+
+Batches (:func:`localize_batch`): ``jax.vmap(localize)`` over a stacked batch of queries
+(``query.stack_queries``). With a mesh of several devices the query axis is split over them
+(the map copied to every device; queries never interact, so each device localizes its own
+slice with no communication). The batch is padded to a multiple of the device count by
+repeating its last query; the padding rows are dropped from the result.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from vrs_jax.data.images import read_gray
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.localize.config import LocalizeConfig
-from vrs_jax.localize.query import prepare_query
+from vrs_jax.localize.query import Query, prepare_query
 from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query
-from vrs_jax.localize.run import localize, localize_timed
+from vrs_jax.localize.run import _localize, localize, localize_timed
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 from vrs_jax.maps import Map
 
 log = logging.getLogger("vrs_jax")
+QUERY_AXIS = "queries"
 
 
 def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool = True,
@@ -73,3 +84,83 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
         "errors": errors,
     }
     return results, info
+
+
+# ----------------------------------------------------------------------------- batches
+
+
+def query_mesh(devices: Sequence[Any] | int | None = None) -> Mesh:
+    """A 1-D mesh (axis ``"queries"``) over ``devices``: a list, the first N of
+    ``jax.devices()``, or None for all of them."""
+    all_devices = jax.devices()
+    if devices is None:
+        devices = all_devices
+    elif isinstance(devices, int):
+        if not 1 <= devices <= len(all_devices):
+            raise VrsError(f"{devices} devices requested, {len(all_devices)} available")
+        devices = all_devices[:devices]
+    return Mesh(np.asarray(list(devices)), (QUERY_AXIS,))
+
+
+def pad_queries(q: Query, multiple: int) -> tuple[Query, np.ndarray]:
+    """Pad a stacked batch of B queries to the next multiple of ``multiple`` by repeating the
+    last query (a valid query: no NaN, the same work). Returns (padded batch, valid [B_pad]
+    bool)."""
+    b = int(q.K.shape[0])
+    if b == 0:
+        raise VrsError("empty batch of queries")
+    pad = (-b) % multiple
+    valid = np.arange(b + pad) < b
+    if pad == 0:
+        return q, valid
+    return jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]),
+                        q), valid
+
+
+@functools.lru_cache(maxsize=16)
+def make_localize_batch(cfg: LocalizeConfig) -> Callable[[Map, Query], LocalizeResult]:
+    """The jitted batched ``localize``: ``(map, queries [B, ...]) -> LocalizeResult [B, ...]``
+    (``jit(vmap(localize))``; runs on the device its inputs are on)."""
+    return jax.jit(jax.vmap(lambda m, q: _localize(m, q, cfg), in_axes=(None, 0)))
+
+
+def place_map(m: Map, mesh: Mesh) -> list[Map]:
+    """One copy of the map on each device of ``mesh`` (a long-lived caller keeps them)."""
+    return [jax.device_put(m, d) for d in mesh.devices.flat]
+
+
+def localize_batch(m: Map | list[Map], q: Query, cfg: LocalizeConfig,
+                   mesh: Mesh | None = None) -> LocalizeResult:
+    """Localize a stacked batch of B queries (``stack_queries``), its query axis sharded over
+    the devices of ``mesh`` (None or one device: unsharded).
+
+    Args:
+      m: the map, or its per-device copies (:func:`place_map`, to skip the copies per call).
+      q: Query [B, ...]; padded here to a multiple of the device count.
+    Returns:
+      LocalizeResult [B, ...]: device arrays, split along the query axis
+      (``NamedSharding(mesh, P("queries"))``) when sharded.
+
+    Each device localizes its contiguous slice of the padded batch with the jitted vmapped
+    ``localize``, all dispatched asynchronously (the devices run concurrently) and assembled
+    into one sharded array: no collective, no cross-device step. (Not one SPMD program:
+    ``jax.shard_map`` breaks optimistix's LM solve in the pose refinement, and under GSPMD
+    the RANSAC host callback is placed on the first device, the batch gathered there, and
+    forced CPU devices could deadlock in that exchange.)
+    """
+    fn = make_localize_batch(cfg)
+    if mesh is None or mesh.size == 1:
+        return fn(m[0] if isinstance(m, list) else m, q)
+    n = mesh.size
+    b = int(q.K.shape[0])
+    qp, _ = pad_queries(q, n)
+    per = int(qp.K.shape[0]) // n
+    maps_ = m if isinstance(m, list) else place_map(m, mesh)
+    outs = []
+    for i, d in enumerate(mesh.devices.flat):
+        qi = jax.device_put(jax.tree.map(lambda x, i=i: x[i * per:(i + 1) * per], qp), d)
+        outs.append(fn(maps_[i], qi))
+    rows = NamedSharding(mesh, PartitionSpec(QUERY_AXIS))
+    out = jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
+        (n * xs[0].shape[0],) + xs[0].shape[1:], rows, list(xs)), *outs)
+    return jax.tree.map(lambda x: x[:b], out)

@@ -5,11 +5,13 @@
     loc.warmup(320, 240)                                 # optional: compile before the first image
     r = loc.localize_image("query.png", K, dist)         # LocalizeResult of numpy values
     results, errors = loc.localize_batch(paths, Ks, dists)
+    loc = Localizer("maps/room", devices=4)              # batches split over 4 devices
 
 A thin wrapper around :func:`~vrs_jax.localize.query.prepare_query`,
 :func:`~vrs_jax.localize.run.localize` and :func:`~vrs_jax.localize.query.stack_queries`:
 every query is padded to ``cfg.query_keypoints``, so one compilation serves every image (and
-one per batch size for ``localize_batch``, which runs ``jax.vmap(localize)`` over the batch).
+one per batch size for ``localize_batch``, which runs ``jax.vmap(localize)`` over the batch,
+its query axis sharded over the devices: :func:`~vrs_jax.localize.batch.localize_batch`).
 """
 
 from __future__ import annotations
@@ -25,10 +27,11 @@ import numpy as np
 
 from vrs_jax.data.images import luma, read_gray
 from vrs_jax.errors import VrsError
+from vrs_jax.localize import batch as batch_lib
 from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
-from vrs_jax.localize.run import JITTED_STAGES, _localize, localize, run_stages
+from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map, load_map
 
@@ -96,10 +99,13 @@ class Localizer:
       cache_mb: render mode: keep the rendered descriptors of recently retrieved reference
         images within this many MB (:class:`~vrs_jax.localize.cache.DescriptorCache`); 0: no
         cache, every query renders its references (the fused jitted ``localize``).
+      devices: ``localize_batch`` splits its batch over these devices (a list, the first N of
+        ``jax.devices()``, or None: all of them); one device: a plain vmapped batch.
     """
 
     def __init__(self, map_or_dir: Map | str | Path, cfg: LocalizeConfig | str | None = None,
-                 source: str | None = "render", cache_mb: float = 0.0):
+                 source: str | None = "render", cache_mb: float = 0.0,
+                 devices: Sequence[Any] | int | None = None):
         self.cfg = _resolve_config(cfg, source)
         self.cache = (DescriptorCache(cache_mb) if cache_mb > 0 and self.cfg.source == "render"
                       else None)
@@ -107,8 +113,8 @@ class Localizer:
             self.map = map_or_dir
         else:
             self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real")
-        cfg_ = self.cfg
-        self._batched = jax.jit(jax.vmap(lambda m, q: _localize(m, q, cfg_), in_axes=(None, 0)))
+        self.mesh = batch_lib.query_mesh(devices)
+        self._placed_map: Map | list[Map] | None = None
 
     # ------------------------------------------------------------------ preparation
 
@@ -182,7 +188,8 @@ class Localizer:
         Returns:
           (results, errors): per image a LocalizeResult of numpy values, or None with the
           reason (the VrsError's message) in ``errors`` at the same index; the other images are
-          localized. Compiled once per number of usable images.
+          localized. Compiled once per number of usable images (rounded up to a multiple of
+          the device count: the batch is sharded over ``devices``).
         """
         n = len(images)
         if len(Ks) != n or (dists is not None and len(dists) != n):
@@ -201,7 +208,11 @@ class Localizer:
                 errors[i] = str(e)
         results: list[LocalizeResult | None] = [None] * n
         if queries:
-            batch = jax.device_get(self._batched(self.map, stack_queries(queries)))
+            if self._placed_map is None:  # the map on every device of the mesh, once
+                self._placed_map = (self.map if self.mesh.size == 1 else
+                                    batch_lib.place_map(self.map, self.mesh))
+            batch = jax.device_get(batch_lib.localize_batch(
+                self._placed_map, stack_queries(queries), self.cfg, self.mesh))
             for j, i in enumerate(ok):
                 results[i] = jax.tree.map(lambda x, j=j: x[j], batch)
         return results, errors

@@ -46,6 +46,7 @@ from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf import clusters as clusters_lib
 from vrs_jax.nerf import data as data_lib
+from vrs_jax.nerf import distributed as dist
 from vrs_jax.nerf import patch_pool
 from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.ilm import ILM
@@ -175,7 +176,13 @@ def make_train_step(cfg: NerfConfig, donate: bool = True
 
 
 def cluster_mesh(n_clusters: int, devices: list | None = None) -> Mesh:
-    """A 1-D mesh over as many devices as evenly divide the cluster count."""
+    """A 1-D mesh over as many devices as evenly divide the cluster count.
+
+    Multi-process (``jax.distributed``): over the global devices, the same number from every
+    process (:func:`vrs_jax.nerf.distributed.mesh_devices`).
+    """
+    if dist.is_multiprocess():
+        return Mesh(np.array(dist.mesh_devices(n_clusters, devices)), (CLUSTER_AXIS,))
     devices = list(jax.devices() if devices is None else devices)
     d = max(k for k in range(1, len(devices) + 1) if n_clusters % k == 0)
     return Mesh(np.array(devices[:d]), (CLUSTER_AXIS,))
@@ -184,15 +191,18 @@ def cluster_mesh(n_clusters: int, devices: list | None = None) -> Mesh:
 def shard_clusters(tree: Any, mesh: Mesh) -> Any:
     """Place every leaf's leading (cluster) axis across the mesh; scalars are replicated."""
 
+    put_ = dist.put_global if dist.is_multiprocess() else jax.device_put
+
     def put(x):
         spec = PartitionSpec(CLUSTER_AXIS) if np.ndim(x) > 0 else PartitionSpec()
-        return jax.device_put(x, NamedSharding(mesh, spec))
+        return put_(x, NamedSharding(mesh, spec))
 
     return jax.tree.map(put, tree)
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
-    return jax.tree.map(lambda x: jax.device_put(x, NamedSharding(mesh, PartitionSpec())), tree)
+    put_ = dist.put_global if dist.is_multiprocess() else jax.device_put
+    return jax.tree.map(lambda x: put_(x, NamedSharding(mesh, PartitionSpec())), tree)
 
 
 def shard_state(state: TrainState, mesh: Mesh) -> TrainState:
@@ -412,7 +422,8 @@ def _quiet_orbax_logs() -> None:
 def _preflight(directory: Path, tree: Any, step: int) -> None:
     """Refuse a save that cannot fit before orbax starts it (orbax's failure midway is noisy):
     free space on the device and the process's file size limit against the state's bytes."""
-    need = sum(int(np.asarray(x).nbytes) for x in jax.tree.leaves(tree))
+    need = sum(int(x.nbytes) if isinstance(x, jax.Array) else int(np.asarray(x).nbytes)
+               for x in jax.tree.leaves(tree))  # jax.Array: the global size (multi-process)
     try:
         free = shutil.disk_usage(directory).free
     except OSError:
@@ -581,6 +592,11 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
       minutes: wall-clock cap of this call (compilation included); a later call resumes.
       resume: continue from the latest checkpoint in out_dir when there is one.
       mesh: device mesh for the cluster axis (default: all devices, see cluster_mesh).
+
+    Multi-process (after ``jax.distributed.initialize``, see nerf/distributed.py): every
+    process calls ``train`` with the same arguments; each trains its shard of the clusters,
+    all write the orbax checkpoints together, only process 0 logs and shows progress; the
+    returned state and ILM hold every cluster's parameters on every process.
     Raises:
       TrainingDiverged (a VrsError) when the loss or parameters become non-finite; the last
       good checkpoint stays on disk.
@@ -589,6 +605,9 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     if steps is None:
         steps = cfg.max_steps
     log = log or (lambda s: tqdm.write(s))
+    multi = dist.is_multiprocess()
+    if multi and not dist.is_primary():
+        log, progress = (lambda _: None), False
     t_start = time.perf_counter()
     n_c = cfg.n_clusters
     mesh = mesh or cluster_mesh(n_c)
@@ -639,7 +658,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     held = math.nan
     try:
         s = start_step
-        while s < target and time.perf_counter() < deadline:
+        while s < target and (multi or time.perf_counter() < deadline):
             state, metrics = step_fn(state, cl, bank)
             s += 1  # counted on the host: no device sync per step
             if t_loop is None:  # the first step includes compilation
@@ -647,13 +666,18 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                 t_loop = time.perf_counter()
                 compile_s = t_loop - t_start
                 steps_after_compile = s
+            if multi:  # the processes must stop at the same step: process 0's clock decides
+                past = (s % cfg.log_every == 0 and math.isfinite(deadline)
+                        and dist.agree(time.perf_counter() >= deadline))
+            else:
+                past = time.perf_counter() >= deadline
             read = (s % cfg.log_every == 0 or s % cfg.checkpoint_every == 0 or s >= target
-                    or time.perf_counter() >= deadline
-                    or (eval_fn is not None and s % cfg.eval_every == 0))
+                    or past or (eval_fn is not None and s % cfg.eval_every == 0))
             if not read:
                 continue
             t_aside = time.perf_counter()
-            m = jax.device_get(metrics)  # the only host read: every log_every steps
+            # the only host read: every log_every steps
+            m = dist.gather(metrics) if multi else jax.device_get(metrics)
             if not np.all(m["finite"]):
                 bad = int(np.flatnonzero(~m["finite"])[0])
                 where = (f"last good checkpoint: step {last_good} in "
@@ -677,6 +701,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                 save_checkpoint(mngr, state, meta)
                 last_good = s
             aside_s += time.perf_counter() - t_aside
+            if past:
+                break
         jax.block_until_ready(state)
         t_end = time.perf_counter()
         done = int(state.step)
@@ -697,6 +723,6 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     timed_steps = done - steps_after_compile
     loop_s = (t_end - t_loop - aside_s) if t_loop is not None else 0.0
     sps = timed_steps / loop_s if loop_s > 0 else 0.0
-    params = jax.device_get(state.params)
+    params = dist.gather(state.params) if multi else jax.device_get(state.params)
     return TrainResult(state, prep.ilm(jax.tree.map(jnp.asarray, params)), history, sps,
                        t_end - t_start, compile_s)
