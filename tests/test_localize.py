@@ -165,7 +165,7 @@ def test_vmap_over_queries_matches_single_calls(loaded):
 
 
 def test_batch_renders_query_by_query_and_matches_single_calls(loaded):
-    """localize_batch (render stages lax.mapped, the rest vmapped) gives the single calls'
+    """localize_stacked (render stages lax.mapped, the rest vmapped) gives the single calls'
     results, guided pass included, and its render stage keeps the chunk skip (a cond, not
     a select: the jaxpr of the batch keeps a ``cond`` inside the render loop)."""
     m, queries = loaded
@@ -174,12 +174,12 @@ def test_batch_renders_query_by_query_and_matches_single_calls(loaded):
     qs = [_query(m, queries, i, cfg) for i in range(2)]
     single = [localize.localize(vrs, q, cfg) for q in qs]
     stacked = localize.stack_queries(qs)
-    batched = localize.localize_batch(vrs, stacked, cfg)
+    batched = localize.localize_stacked(vrs, stacked, cfg)
     for i, r in enumerate(single):
         np.testing.assert_array_equal(np.asarray(batched.retrieved[i]), np.asarray(r.retrieved))
         np.testing.assert_allclose(np.asarray(batched.t[i]), np.asarray(r.t), atol=1e-3)
         assert int(batched.n_inliers[i]) == int(r.n_inliers)
-    jaxpr = str(jax.make_jaxpr(lambda q: localize.run._localize_batch(vrs, q, cfg))(stacked))
+    jaxpr = str(jax.make_jaxpr(lambda q: localize.run._localize_stacked(vrs, q, cfg))(stacked))
     vm = str(jax.make_jaxpr(jax.vmap(lambda q: localize.run._localize(vrs, q, cfg)))(stacked))
     assert jaxpr.count("cond[") > vm.count("cond[")
 

@@ -31,7 +31,7 @@ from vrs_jax.errors import VrsError
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query, prepare_query
 from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query
-from vrs_jax.localize.run import _localize, localize, localize_timed
+from vrs_jax.localize.run import localize, localize_stacked, localize_timed
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 from vrs_jax.maps import Map
 
@@ -120,8 +120,9 @@ def pad_queries(q: Query, multiple: int) -> tuple[Query, np.ndarray]:
 @functools.lru_cache(maxsize=16)
 def make_localize_batch(cfg: LocalizeConfig) -> Callable[[Map, Query], LocalizeResult]:
     """The jitted batched ``localize``: ``(map, queries [B, ...]) -> LocalizeResult [B, ...]``
-    (``jit(vmap(localize))``; runs on the device its inputs are on)."""
-    return jax.jit(jax.vmap(lambda m, q: _localize(m, q, cfg), in_axes=(None, 0)))
+    (:func:`~vrs_jax.localize.run.localize_stacked`: vmapped, rendering query by query; runs on
+    the device its inputs are on)."""
+    return functools.partial(localize_stacked, cfg=cfg)
 
 
 def place_map(m: Map, mesh: Mesh) -> list[Map]:

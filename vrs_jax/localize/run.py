@@ -68,7 +68,7 @@ Returns:
 SEQUENTIAL_STAGES = ("render", "guided")
 
 
-def _localize_batch(m: Map, qs: Query, cfg: LocalizeConfig) -> LocalizeResult:
+def _localize_stacked(m: Map, qs: Query, cfg: LocalizeConfig) -> LocalizeResult:
     st.check(m, cfg)
     s: st.State = {}
     for name, fn in st.stages_for(cfg):
@@ -80,11 +80,11 @@ def _localize_batch(m: Map, qs: Query, cfg: LocalizeConfig) -> LocalizeResult:
     return s["result"]
 
 
-localize_batch = jax.jit(_localize_batch, static_argnames=("cfg",))
-localize_batch.__doc__ = """Localize a stacked batch of queries (leading axis B): the same stages
-as :func:`localize`, vmapped, except that the rendering stages run query by query so that no
-padding is rendered (see :data:`SEQUENTIAL_STAGES`). Returns a LocalizeResult with a leading
-axis B, equal to ``jax.vmap(localize)``'s."""
+localize_stacked = jax.jit(_localize_stacked, static_argnames=("cfg",))
+localize_stacked.__doc__ = """Localize a stacked batch of queries (leading axis B) on one device:
+the same stages as :func:`localize`, vmapped, except that the rendering stages run query by
+query so that no padding is rendered (see :data:`SEQUENTIAL_STAGES`). Returns a
+LocalizeResult with a leading axis B, equal to ``jax.vmap(localize)``'s."""
 
 _JITTED = {name: jax.jit(fn, static_argnames=("cfg",)) for name, fn in st.STAGES}
 JITTED_STAGES = _JITTED  # one jitted function per stage (compiled once per map and config)
