@@ -101,9 +101,10 @@ class SyntheticConfig:
     supersample: int = 2
     # Several rooms (the large scene): ``n_rooms`` rooms side by side along x, the same depth
     # and height (room_size[1:]), separated by partition walls with a doorway. Each room has
-    # its own camera loop (the path radii scaled with the room's width), boxes and two lights;
-    # n_reference and n_query count the frames of a room of width room_size[0] and scale with
-    # each room's width (constant view density). A single room (the default) is unchanged.
+    # its own camera loop (x radius min(path_radii[0], width / 2 - 1 m)), boxes and two
+    # lights; n_reference and n_query count the frames of a loop of the path_radii and scale
+    # with each loop's size (a + b), so the view spacing stays the same. A single room (the
+    # default) is unchanged.
     n_rooms: int = 1
     room_widths: tuple[float, ...] = ()  # x extent (m) of each room; (): room_size[0] each
     door_width: float = 1.0  # doorway in each partition wall, centred in y (m)
@@ -126,13 +127,10 @@ class SyntheticConfig:
         if self.room_widths and len(self.room_widths) != self.n_rooms:
             raise VrsError(f"room_widths lists {len(self.room_widths)} widths for "
                            f"{self.n_rooms} rooms")
-        if any(w < 2.0 for w in self.room_widths):
-            raise VrsError("every room must be at least 2 m wide")
+        if any(w < 2.6 for w in self.room_widths):
+            raise VrsError("every room must be at least 2.6 m wide")
         if self.n_rooms > 1 and not 0.3 <= self.door_width <= ly - 0.4:
             raise VrsError(f"door width {self.door_width} m out of range [0.3, {ly - 0.4}]")
-        for w in self.room_widths:
-            if self.path_radii[0] * w / lx + 0.5 > w / 2 - self.wall_thickness / 2:
-                raise VrsError(f"a room {w} m wide is too narrow for its camera path")
 
     @property
     def widths(self) -> tuple[float, ...]:
@@ -140,13 +138,20 @@ class SyntheticConfig:
         return tuple(float(w) for w in self.room_widths) or (float(self.room_size[0]),
                                                             ) * self.n_rooms
 
+    def loop_radius_x(self, width: float) -> float:
+        """x semi-axis (m) of the camera loop of a room ``width`` metres wide."""
+        if self.n_rooms == 1:
+            return self.path_radii[0]
+        return min(self.path_radii[0], width / 2 - 1.0)
+
     def room_frames(self) -> tuple[list[int], list[int]]:
-        """Reference and query frame counts of each room (scaled with its width)."""
-        lx = self.room_size[0]
-        if self.n_rooms == 1 and not self.room_widths:
+        """Reference and query frame counts of each room (scaled with its loop's size)."""
+        if self.n_rooms == 1:
             return [self.n_reference], [self.n_query]
-        return ([max(2, round(self.n_reference * w / lx)) for w in self.widths],
-                [round(self.n_query * w / lx) for w in self.widths])
+        a, b = self.path_radii
+        scale = [(self.loop_radius_x(w) + b) / (a + b) for w in self.widths]
+        return ([max(2, round(self.n_reference * f)) for f in scale],
+                [round(self.n_query * f) for f in scale])
 
     @property
     def total_reference(self) -> int:
@@ -169,13 +174,12 @@ CONFIGS: dict[str, SyntheticConfig] = {
     # Tiny images and few frames for unit tests; coarser textures (1.6 cm texels are still
     # finer than a pixel at 96x72) so that building them takes a fraction of a second.
     "test": SyntheticConfig(width=96, height=72, n_reference=12, n_query=3, texels_per_m=64.0),
-    # The large scene: a 7 m hall and three 3.5 m offices in a row (17.5 x 4 m), joined by
-    # doorways; 160x120 images, 20 references and 4 queries per 5 m of room (28 + 3 x 14 =
-    # 70 references, 6 + 3 x 3 = 15 queries). Four rooms of unequal widths: K-means on the
-    # camera centres finds the four rooms, while a uniform grid of four cells along the row
-    # cuts through the loops of three of them.
-    "rooms4": SyntheticConfig(width=160, height=120, n_reference=20, n_query=4,
-                              texels_per_m=128.0, n_rooms=4, room_widths=(7.0, 3.5, 3.5, 3.5)),
+    # The large scene: an 8 m hall and three 3.5 m offices in a row (18.5 x 4 m), joined by
+    # doorways; 160x120 images; 20 references + 5 queries in the hall, 15 + 4 in each office
+    # (65 + 17). Four rooms of unequal widths: K-means on the camera centres finds the four
+    # rooms, while a uniform grid of four cells along the row cuts through two offices.
+    "rooms4": SyntheticConfig(width=160, height=120, n_reference=20, n_query=5,
+                              texels_per_m=128.0, n_rooms=4, room_widths=(8.0, 3.5, 3.5, 3.5)),
 }
 
 
@@ -268,12 +272,12 @@ def _trajectory(cfg: SyntheticConfig, s: np.ndarray, phases: np.ndarray,
     Smooth in s: positions on a wobbling ellipse with varying height; the optical axis looks
     outwards with a slowly swinging yaw, pitch and roll. ``offsets`` (query path) adds radial
     (m), height (m), yaw/pitch/roll (rad) offsets, each [N]. ``center_x``, ``width``: the
-    room's centre and width (the loop's x radius scales with width / room_size[0]).
+    room's centre and width (:meth:`SyntheticConfig.loop_radius_x`).
     """
     p = phases
     a, b = cfg.path_radii
-    if width is not None and width != cfg.room_size[0]:
-        a = a * width / cfg.room_size[0]
+    if width is not None:
+        a = cfg.loop_radius_x(width)
     wobble = 1.0 + 0.08 * np.sin(3 * s + p[0])
     radial = np.stack([a * np.cos(s), b * np.sin(s)], -1) * wobble[:, None]
     normal = np.stack([np.cos(s) / a, np.sin(s) / b], -1)

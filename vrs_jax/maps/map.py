@@ -39,7 +39,8 @@ from vrs_jax.nerf import ilm as ilm_lib
 from vrs_jax.nerf.ilm import ILM
 
 KIND = "vrs_jax.map"
-FORMAT_VERSION = 2
+# 3: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
+FORMAT_VERSION = 3
 META = "map.json"
 EGM_FILE = "egm.npz"
 DESC_FILE = "descriptors.npz"

@@ -23,7 +23,8 @@ from vrs_jax.errors import VrsError
 from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.model import Field, init_params, select_field
 
-FORMAT_VERSION = 1
+# 2: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
+FORMAT_VERSION = 2
 _META = "__meta__"
 
 
