@@ -5,7 +5,9 @@
 
 ``--config rooms4`` is the large scene (four rooms in a row joined by doorways, one camera
 loop per room: the multi-cluster benchmark's scene); ``--rooms N`` puts N equal rooms in a row
-(with ``--config rooms4``: N rooms, the first 8 m wide, the others 3.5 m). Writes DIR/seq-01 (reference frames), DIR/seq-02 (query frames), TrainSplit.txt,
+(with ``--config rooms4``: N rooms, the first 8 m wide, the others 3.5 m).
+
+Writes DIR/seq-01 (reference frames), DIR/seq-02 (query frames), TrainSplit.txt,
 TestSplit.txt, intrinsics.txt and README.txt; load it back with
 ``vrs_jax.data.readers.load_scene("7scenes", DIR)``. Re-running with the same settings on a
 complete output does nothing; an interrupted run resumes.
