@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 import time
 from pathlib import Path
@@ -54,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clusters", type=int, default=4, help="clusters C (default 4)")
     p.add_argument("--steps", type=int, default=2000,
                    help="NeRF training steps of every configuration (default 2000)")
+    p.add_argument("--width", type=int, default=None,
+                   help="trunk width of the single NeRF (default: the config's; the view head "
+                        "scales with it); the clusters get the width of equal total size")
     p.add_argument("--rays", type=int, default=256,
                    help="rays per training step in total: the single NeRF's batch; each of C "
                         "clusters trains on rays / C (default 256)")
@@ -78,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
 # ----------------------------------------------------------------------------- configs
 
 
+@functools.cache
 def param_count(ncfg) -> int:
     """Parameters of one cluster's NeRF (counted from shapes, nothing initialised)."""
     import jax
@@ -90,25 +95,40 @@ def param_count(ncfg) -> int:
 
 def equal_size_width(ncfg, n_clusters: int) -> tuple[int, int]:
     """(trunk width, head width) of each of ``n_clusters`` NeRFs whose total parameter count
-    is closest to one NeRF of ``ncfg`` (the head width scales with the trunk's)."""
+    is closest to one NeRF of ``ncfg`` (the head width scales with the trunk's).
+
+    The count grows with the width, so a bisection finds the crossing; the closer of its two
+    neighbours wins.
+    """
     target = param_count(ncfg)
-    best, best_diff = (ncfg.net_width, ncfg.net_width_condition), math.inf
-    for w in range(2, ncfg.net_width + 1):
-        wc = max(1, round(ncfg.net_width_condition * w / ncfg.net_width))
-        total = n_clusters * param_count(dataclasses.replace(ncfg, net_width=w,
-                                                             net_width_condition=wc))
-        if abs(total - target) < best_diff:
-            best, best_diff = (w, wc), abs(total - target)
-    return best
+
+    def shape(w: int) -> tuple[int, int]:
+        return w, max(1, round(ncfg.net_width_condition * w / ncfg.net_width))
+
+    def total(w: int) -> int:
+        w, wc = shape(w)
+        return n_clusters * param_count(dataclasses.replace(ncfg, net_width=w,
+                                                            net_width_condition=wc))
+
+    lo, hi = 1, ncfg.net_width  # total(lo) <= target < total(hi) for n_clusters >= 2
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if total(mid) <= target else (lo, mid)
+    return shape(min((lo, hi), key=lambda w: abs(total(w) - target)))
 
 
-def map_configs(base, n_clusters: int, steps: int, rays: int) -> dict[str, Any]:
-    """The MapConfig of each configuration (``one``, ``kmeans``, ``grid``)."""
+def map_configs(base, n_clusters: int, steps: int, rays: int, width: int | None = None
+                ) -> dict[str, Any]:
+    """The MapConfig of each configuration (``one``, ``kmeans``, ``grid``); ``width``: the
+    single NeRF's trunk width (default the config's)."""
     if n_clusters < 2:
         raise VrsError("--clusters must be >= 2 (the comparison is with one NeRF)")
     if rays % n_clusters:
         raise VrsError(f"--rays {rays} must be a multiple of --clusters {n_clusters}")
     one = dataclasses.replace(base.nerf, n_clusters=1, max_steps=steps, batch_size=rays)
+    if width is not None and width != one.net_width:
+        one = dataclasses.replace(one, net_width=width, net_width_condition=max(
+            1, round(one.net_width_condition * width / one.net_width)))
     w, wc = equal_size_width(one, n_clusters)
     split = dataclasses.replace(one, n_clusters=n_clusters, net_width=w, net_width_condition=wc,
                                 batch_size=rays // n_clusters)
@@ -336,7 +356,8 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     t_start = time.perf_counter()
     scene, layout = make_scene(work, args.quiet)
-    cfgs = map_configs(maps.get_config(args.config), args.clusters, args.steps, args.rays)
+    cfgs = map_configs(maps.get_config(args.config), args.clusters, args.steps, args.rays,
+                       args.width)
     spec = common.SceneSpec(SCENE_CONFIG, "7scenes", (), None, args.steps,
                             "synthetic rooms4: an 8 m hall and three 3.5 m offices in a row, "
                             f"{len(scene.references())} references + "
