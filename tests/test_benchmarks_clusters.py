@@ -35,15 +35,19 @@ def test_param_count_and_equal_size_width():
 
 
 def test_map_configs_differ_only_in_the_partition():
-    cfgs = bench.map_configs(maps.get_config("test"), 4, steps=123, rays=256)
+    cfgs = bench.map_configs(maps.get_config("test"), 4, steps=123, rays=256, width=128)
     one, km, grid = (cfgs[k].nerf for k in bench.LABELS)
     assert (one.n_clusters, km.n_clusters, grid.n_clusters) == (1, 4, 4)
-    assert one.batch_size == 4 * km.batch_size == 256 and one.max_steps == km.max_steps == 123
+    assert one.net_width == 128 and one.net_width_condition == 64 and km.net_width < 64
+    assert one.batch_size == km.batch_size == 256 and one.max_steps == km.max_steps == 123
+    split = bench.map_configs(maps.get_config("test"), 4, 123, 256, cluster_rays="split")
+    assert split["grid"].nerf.batch_size == 64
     assert (km.cluster_method, grid.cluster_method) == ("kmeans", "grid")
     assert dataclasses.replace(km, cluster_method="grid") == grid
     assert cfgs["kmeans"].egm == cfgs["one"].egm == cfgs["grid"].egm
     with pytest.raises(Exception, match="multiple"):
-        bench.map_configs(maps.get_config("test"), 3, steps=10, rays=256)
+        bench.map_configs(maps.get_config("test"), 3, steps=10, rays=256,
+                          cluster_rays="split")
 
 
 @pytest.fixture(scope="module")
