@@ -223,7 +223,9 @@ def _format2_folder(m: maps.Map, d):
     d.mkdir(parents=True)
     for name, b in blobs.items():
         (d / name).write_bytes(b)
-    meta = {"kind": "vrs_jax.map", "format_version": 2, "config": configio.to_dict(m.config),
+    conf = configio.to_dict(m.config)
+    del conf["nerf"]["cluster_method"]  # format 2 predates it
+    meta = {"kind": "vrs_jax.map", "format_version": 2, "config": conf,
             "source": configio.to_dict(m.source), "names": list(e.names), "k_max": e.k_max,
             "files": {n: {"sha256": fileio.sha256(b), "bytes": len(b)}
                       for n, b in blobs.items()}, "stats": {"kept": 1}}

@@ -322,3 +322,126 @@ def test_cli(tmp_path, capsys):
     with pytest.raises(SystemExit):
         make_synthetic.main(["--out", str(out), "--n-ref", "1"])
     assert "must be >= 2" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- several rooms
+
+# Content hash (decoded pixels, depth, poses and text files) of the test room with 3 references
+# and 1 query, computed with the generator as it was before the multi-room extension.
+SINGLE_ROOM_CONTENT_SHA256 = "33f14c6de6ddd60b656f2e26d161f7f6b4b4879d50373f55f5908645cca8bbdb"
+
+
+def _content_hash(root: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if not p.is_file():
+            continue
+        h.update(str(p.relative_to(root)).encode())
+        if p.suffix == ".png":
+            h.update(np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_UNCHANGED)).tobytes())
+        else:
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def test_single_room_is_unchanged_by_the_room_extension(tmp_path):
+    cfg = dataclasses.replace(CFG, n_reference=3, n_query=1)
+    out = sy.generate(tmp_path / "one", cfg)
+    assert _content_hash(out) == SINGLE_ROOM_CONTENT_SHA256
+    assert "n_rooms" not in (out / "synthetic.json").read_text()
+
+
+ROOMS = sy.get_config("rooms4")
+
+
+def test_rooms4_layout_rooms_walls_and_cameras():
+    lay = sy.build_layout(ROOMS)
+    n_ref, n_q = ROOMS.room_frames()
+    assert n_ref == [20, 15, 15, 15] and n_q == [5, 4, 4, 4]
+    assert len(lay.c2w_ref) == ROOMS.total_reference == 65
+    assert len(lay.c2w_query) == ROOMS.total_query == 17
+    np.testing.assert_allclose(lay.room_x, [-9.25, -1.25, 2.25, 5.75, 9.25])
+    np.testing.assert_allclose(lay.room_max - lay.room_min, [18.5, 4.0, 2.6])
+    # every camera lies inside its own room, at least 0.5 m from its walls
+    for c2w, room in ((lay.c2w_ref, lay.ref_room), (lay.c2w_query, lay.query_room)):
+        x = c2w[:, 0, 3]
+        assert np.all(x > lay.room_x[room] + 0.5) and np.all(x < lay.room_x[room + 1] - 0.5)
+    # partition walls: the last 6 boxes, floor to ceiling at the inner boundaries with a 1 m door
+    walls = lay.boxes[-6:]
+    for b in walls:
+        assert b.half[2] * 2 == pytest.approx(2.6) and b.yaw == 0.0
+        assert np.min(np.abs(b.center[0] - lay.room_x[1:-1])) < 1e-9
+    gaps = sorted(b.center[1] - b.half[1] for b in walls if b.center[1] > 0)
+    assert gaps == pytest.approx([0.5] * 3)  # doorway from y = -0.5 to 0.5
+    # furniture boxes stay in one room, clear of the walls
+    for b in lay.boxes[:-6]:
+        fp = sy._box_footprint(b.center, b.half, b.yaw)[:, 0]
+        r = np.searchsorted(lay.room_x, b.center[0]) - 1
+        assert fp.min() > lay.room_x[r] + 0.03 and fp.max() < lay.room_x[r + 1] - 0.03
+    # a ray from room 0's centre along +x, above the boxes (<= 1.2 m), passes the three
+    # doorways and hits the end wall (face 1: the room's +x plane); 1.5 m beside the doorway
+    # it hits the first partition wall
+    assert max(b.center[2] + b.half[2] for b in lay.boxes[:-6]) <= 1.2
+    t, face = sy.cast_rays(lay, np.array([lay.room_centers()[0], 0.0, 1.5]),
+                           np.array([[1.0, 0.0, 0.0]]))
+    assert face[0] == 1 and t[0] == pytest.approx(lay.room_x[-1] - lay.room_centers()[0])
+    t, face = sy.cast_rays(lay, np.array([lay.room_centers()[0], 1.5, 1.5]),
+                           np.array([[1.0, 0.0, 0.0]]))
+    assert face[0] >= 6 and t[0] == pytest.approx(lay.room_x[1] - 0.06 - lay.room_centers()[0])
+
+
+def test_rooms4_cameras_form_four_separable_clusters():
+    """K-means (any seed) finds the four rooms; a uniform grid of four cells cuts two of
+    them: the scene the cluster benchmark compares the two on."""
+    from vrs_jax.nerf import clusters
+
+    lay = sy.build_layout(ROOMS)
+    x = lay.c2w_ref[:, :3, 3]
+    room = lay.ref_room
+    # well separated: the closest cameras of two rooms are farther apart than 2x the largest
+    # distance of a camera to its own room's mean
+    spread = max(np.linalg.norm(x[room == r] - x[room == r].mean(0), axis=1).max()
+                 for r in range(4))
+    gap = min(np.linalg.norm(x[room == a][:, None] - x[room == b][None], axis=-1).min()
+              for a in range(4) for b in range(a + 1, 4))
+    assert gap > 1.5 and gap > 0.9 * spread, (gap, spread)
+    for seed in range(4):
+        cl = clusters.cluster_cameras(x, 4, seed=seed)
+        table = np.zeros((4, 4), int)
+        np.add.at(table, (room, cl.primary), 1)
+        assert (np.count_nonzero(table, axis=1) == 1).all(), table  # one cluster per room
+    grid = clusters.cluster_cameras(x, 4, method="grid")
+    table = np.zeros((4, 4), int)
+    np.add.at(table, (room, grid.primary), 1)
+    assert (np.count_nonzero(table, axis=1) > 1).sum() == 2, table
+
+
+def test_rooms_config_record_and_validation(tmp_path):
+    assert sy.config_dict(ROOMS)["n_rooms"] == 4
+    assert "door_width" not in sy.config_dict(CFG)
+    with pytest.raises(VrsError, match="room_widths"):
+        sy.SyntheticConfig(n_rooms=3, room_widths=(5.0, 5.0))
+    with pytest.raises(VrsError, match="2.6 m wide"):
+        sy.SyntheticConfig(n_rooms=2, room_widths=(5.0, 2.0))
+    with pytest.raises(VrsError, match="door width"):
+        sy.SyntheticConfig(n_rooms=2, door_width=5.0)
+    # three equal rooms, tiny: frames render and read back through the 7Scenes reader
+    cfg = dataclasses.replace(CFG, width=32, height=24, n_reference=4, n_query=1, n_rooms=3,
+                              texels_per_m=16.0, supersample=1)
+    out = sy.generate(tmp_path / "three", cfg)
+    scene = load_scene("7scenes", out)
+    assert len(scene.references()) == 12 and len(scene.queries()) == 3
+    assert "3 procedurally textured rooms" in (out / "README.txt").read_text()
+
+
+def test_cli_rooms(tmp_path, capsys):
+    out = tmp_path / "rooms"
+    args = ["--out", str(out), "--config", "rooms4", "--rooms", "2", "--size", "32x24",
+            "--n-ref", "4", "--n-query", "1"]
+    assert make_synthetic.main(args) == 0
+    assert "2 rooms" in capsys.readouterr().out
+    cfg = make_synthetic.config_of(make_synthetic.build_parser().parse_args(args))
+    assert cfg.n_rooms == 2 and cfg.room_widths == (8.0, 3.5)
+    assert sy.is_generated(out, cfg)

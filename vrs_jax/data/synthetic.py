@@ -33,6 +33,7 @@ Output layout (``generate``)::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import shutil
@@ -98,6 +99,16 @@ class SyntheticConfig:
     shape_size_range: tuple[float, float] = (0.02, 0.4)
     # 2x2 samples per pixel, each a trilinear mip-map lookup: edges and textures anti-aliased.
     supersample: int = 2
+    # Several rooms (the large scene): ``n_rooms`` rooms side by side along x, the same depth
+    # and height (room_size[1:]), separated by partition walls with a doorway. Each room has
+    # its own camera loop (x radius min(path_radii[0], width / 2 - 1 m)), boxes and two
+    # lights; n_reference and n_query count the frames of a loop of the path_radii and scale
+    # with each loop's size (a + b), so the view spacing stays the same. A single room (the
+    # default) is unchanged.
+    n_rooms: int = 1
+    room_widths: tuple[float, ...] = ()  # x extent (m) of each room; (): room_size[0] each
+    door_width: float = 1.0  # doorway in each partition wall, centred in y (m)
+    wall_thickness: float = 0.12  # partition walls (m)
 
     def __post_init__(self) -> None:
         if self.width < 8 or self.height < 8:
@@ -111,6 +122,50 @@ class SyntheticConfig:
         lx, ly, _ = self.room_size
         if self.path_radii[0] + 0.5 > lx / 2 or self.path_radii[1] + 0.5 > ly / 2:
             raise VrsError("camera path must stay 0.5 m inside the room walls")
+        if self.n_rooms < 1:
+            raise VrsError("n_rooms must be >= 1")
+        if self.room_widths and len(self.room_widths) != self.n_rooms:
+            raise VrsError(f"room_widths lists {len(self.room_widths)} widths for "
+                           f"{self.n_rooms} rooms")
+        if any(w < 2.6 for w in self.room_widths):
+            raise VrsError("every room must be at least 2.6 m wide")
+        if self.n_rooms > 1 and not 0.3 <= self.door_width <= ly - 0.4:
+            raise VrsError(f"door width {self.door_width} m out of range [0.3, {ly - 0.4}]")
+
+    @property
+    def widths(self) -> tuple[float, ...]:
+        """x extent (m) of each room (``room_widths`` or room_size[0] for every room)."""
+        return tuple(float(w) for w in self.room_widths) or (float(self.room_size[0]),
+                                                            ) * self.n_rooms
+
+    def loop_radius_x(self, width: float) -> float:
+        """x semi-axis (m) of the camera loop of a room ``width`` metres wide."""
+        if self.n_rooms == 1:
+            return self.path_radii[0]
+        return min(self.path_radii[0], width / 2 - 1.0)
+
+    def room_frames(self) -> tuple[list[int], list[int]]:
+        """Reference and query frame counts of each room (scaled with its loop's size)."""
+        if self.n_rooms == 1:
+            return [self.n_reference], [self.n_query]
+        a, b = self.path_radii
+        scale = [(self.loop_radius_x(w) + b) / (a + b) for w in self.widths]
+        return ([max(2, round(self.n_reference * f)) for f in scale],
+                [round(self.n_query * f) for f in scale])
+
+    @property
+    def total_reference(self) -> int:
+        return sum(self.room_frames()[0])
+
+    @property
+    def total_query(self) -> int:
+        return sum(self.room_frames()[1])
+
+
+# Fields of the multi-room extension: left out of the config record (synthetic.json, README)
+# while at their defaults, so a single-room scene's files are byte-identical to those written
+# before the extension existed.
+_ROOM_FIELDS = ("n_rooms", "room_widths", "door_width", "wall_thickness")
 
 
 CONFIGS: dict[str, SyntheticConfig] = {
@@ -119,11 +174,18 @@ CONFIGS: dict[str, SyntheticConfig] = {
     # Tiny images and few frames for unit tests; coarser textures (1.6 cm texels are still
     # finer than a pixel at 96x72) so that building them takes a fraction of a second.
     "test": SyntheticConfig(width=96, height=72, n_reference=12, n_query=3, texels_per_m=64.0),
+    # The large scene: an 8 m hall and three 3.5 m offices in a row (18.5 x 4 m), joined by
+    # doorways; 160x120 images; 20 references + 5 queries in the hall, 15 + 4 in each office
+    # (65 + 17). Four rooms of unequal widths: K-means on the camera centres finds the four
+    # rooms, while a uniform grid of four cells along the row cuts through two offices.
+    "rooms4": SyntheticConfig(width=160, height=120, n_reference=20, n_query=5,
+                              texels_per_m=128.0, n_rooms=4, room_widths=(8.0, 3.5, 3.5, 3.5)),
 }
 
 
 def get_config(name: str) -> SyntheticConfig:
-    """The named config (``default`` or ``test``); VrsError for an unknown name."""
+    """The named config (``default``, ``test`` or ``rooms4``); VrsError for an unknown
+    name."""
     if name not in CONFIGS:
         raise VrsError(f"unknown synthetic config {name!r}; known: {', '.join(CONFIGS)}")
     return CONFIGS[name]
@@ -157,6 +219,16 @@ class Layout(NamedTuple):
     K: np.ndarray
     c2w_ref: np.ndarray
     c2w_query: np.ndarray
+    # [R + 1] x of the room boundaries (partition walls at the inner ones); None: one room.
+    room_x: np.ndarray | None = None
+    ref_room: np.ndarray | None = None  # [N] int room of each reference camera
+    query_room: np.ndarray | None = None  # [M] int room of each query camera
+
+    def room_centers(self) -> np.ndarray:
+        """[R] x of each room's centre."""
+        x = np.asarray(self.room_x if self.room_x is not None
+                       else [self.room_min[0], self.room_max[0]])
+        return 0.5 * (x[:-1] + x[1:])
 
 
 def intrinsics(cfg: SyntheticConfig) -> np.ndarray:
@@ -165,9 +237,11 @@ def intrinsics(cfg: SyntheticConfig) -> np.ndarray:
     return geometry.intrinsics_matrix(f, f, cfg.width / 2.0, cfg.height / 2.0)
 
 
-def _rng(cfg: SyntheticConfig, stream: int) -> np.random.Generator:
-    """Independent random streams (0: layout phases, 1: boxes, 2: textures) from the seed."""
-    return np.random.default_rng(np.random.SeedSequence([int(cfg.seed), stream]))
+def _rng(cfg: SyntheticConfig, stream: int, room: int = 0) -> np.random.Generator:
+    """Independent random streams (0: layout phases, 1: boxes, 2: textures, 3: query
+    fractions) from the seed; rooms after the first have their own streams."""
+    key = [int(cfg.seed), stream] + ([room] if room else [])
+    return np.random.default_rng(np.random.SeedSequence(key))
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -191,15 +265,19 @@ def look_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.nd
 
 
 def _trajectory(cfg: SyntheticConfig, s: np.ndarray, phases: np.ndarray,
-                offsets: dict[str, np.ndarray] | None = None) -> np.ndarray:
+                offsets: dict[str, np.ndarray] | None = None, center_x: float = 0.0,
+                width: float | None = None) -> np.ndarray:
     """Camera-to-world poses [N, 4, 4] at loop parameters s [N] (radians around the loop).
 
     Smooth in s: positions on a wobbling ellipse with varying height; the optical axis looks
     outwards with a slowly swinging yaw, pitch and roll. ``offsets`` (query path) adds radial
-    (m), height (m), yaw/pitch/roll (rad) offsets, each [N].
+    (m), height (m), yaw/pitch/roll (rad) offsets, each [N]. ``center_x``, ``width``: the
+    room's centre and width (:meth:`SyntheticConfig.loop_radius_x`).
     """
     p = phases
     a, b = cfg.path_radii
+    if width is not None:
+        a = cfg.loop_radius_x(width)
     wobble = 1.0 + 0.08 * np.sin(3 * s + p[0])
     radial = np.stack([a * np.cos(s), b * np.sin(s)], -1) * wobble[:, None]
     normal = np.stack([np.cos(s) / a, np.sin(s) / b], -1)
@@ -217,6 +295,8 @@ def _trajectory(cfg: SyntheticConfig, s: np.ndarray, phases: np.ndarray,
     c2w = np.tile(np.eye(4), (len(s), 1, 1))
     c2w[:, :3, :3] = look_rotation(yaw, pitch, roll)
     c2w[:, :2, 3] = radial
+    if center_x:
+        c2w[:, 0, 3] += center_x
     c2w[:, 2, 3] = height
     return c2w
 
@@ -248,13 +328,18 @@ def _point_box_distance(xy: np.ndarray, center: np.ndarray, half: np.ndarray,
 
 
 def _place_boxes(cfg: SyntheticConfig, rng: np.random.Generator,
-                 cam_xy: np.ndarray) -> tuple[Box, ...]:
+                 cam_xy: np.ndarray, x_range: tuple[float, float] | None = None
+                 ) -> tuple[Box, ...]:
     """Rejection-sample non-overlapping boxes inside the room, clear of the camera paths.
 
     Box b is first tried in its own angular sector around the room centre (so that the boxes
-    spread around the room), then anywhere.
+    spread around the room), then anywhere. ``x_range``: the room's free x interval (between
+    its walls) when it is one of several rooms.
     """
     lx, ly, _ = cfg.room_size
+    x_lo, x_hi = (-lx / 2, lx / 2) if x_range is None else x_range
+    cx = 0.5 * (x_lo + x_hi) if x_range is not None else 0.0
+    lx = x_hi - x_lo if x_range is not None else lx
     n = cfg.n_boxes
     sector0 = rng.uniform(0.0, 2 * math.pi)
     boxes: list[Box] = []
@@ -262,16 +347,18 @@ def _place_boxes(cfg: SyntheticConfig, rng: np.random.Generator,
         for attempt in range(4000):
             w, d = rng.uniform(*cfg.box_footprint_range, size=2)
             h = rng.uniform(*cfg.box_height_range)
-            center = np.array([rng.uniform(-lx / 2, lx / 2), rng.uniform(-ly / 2, ly / 2),
+            center = np.array([rng.uniform(x_lo, x_hi), rng.uniform(-ly / 2, ly / 2),
                                h / 2])
             half = np.array([w / 2, d / 2, h / 2])
             yaw = float(rng.uniform(0.0, math.pi / 2))
             if attempt < 2000:
-                ang = (math.atan2(center[1] / ly, center[0] / lx) - sector0) % (2 * math.pi)
+                ang = (math.atan2(center[1] / ly, (center[0] - cx) / lx) - sector0
+                       ) % (2 * math.pi)
                 if int(ang / (2 * math.pi) * n) != b:
                     continue
             fp = _box_footprint(center, half, yaw)
-            if (np.abs(fp[:, 0]) > lx / 2 - 0.03).any() or (np.abs(fp[:, 1]) > ly / 2 - 0.03).any():
+            if ((fp[:, 0] < x_lo + 0.03).any() or (fp[:, 0] > x_hi - 0.03).any()
+                    or (np.abs(fp[:, 1]) > ly / 2 - 0.03).any()):
                 continue
             if _point_box_distance(cam_xy, center, half, yaw).min() <= cfg.box_clearance:
                 continue
@@ -287,24 +374,63 @@ def _place_boxes(cfg: SyntheticConfig, rng: np.random.Generator,
     return tuple(boxes)
 
 
+def room_bounds(cfg: SyntheticConfig) -> np.ndarray:
+    """[R + 1] x of the room boundaries: the rooms side by side, centred on x = 0."""
+    w = np.asarray(cfg.widths, float)
+    return np.concatenate([[0.0], np.cumsum(w)]) - w.sum() / 2
+
+
+def _partition_walls(cfg: SyntheticConfig, bounds: np.ndarray) -> list[Box]:
+    """Two floor-to-ceiling boxes per inner boundary, leaving a doorway centred in y."""
+    _, ly, lz = cfg.room_size
+    t, door = cfg.wall_thickness, cfg.door_width
+    seg = (ly - door) / 2  # wall length on each side of the door
+    walls = []
+    for x in bounds[1:-1]:
+        for sign in (-1.0, 1.0):
+            y = sign * (door / 2 + seg / 2)
+            walls.append(Box(np.array([x, y, lz / 2]), np.array([t / 2, seg / 2, lz / 2]), 0.0))
+    return walls
+
+
 def build_layout(cfg: SyntheticConfig) -> Layout:
-    """Room, boxes, intrinsics and both trajectories of the scene for ``cfg`` (deterministic)."""
-    phases = _rng(cfg, 0).uniform(0.0, 2 * math.pi, size=11)
-    s_ref = 2 * math.pi * np.arange(cfg.n_reference) / cfg.n_reference
-    c2w_ref = _trajectory(cfg, s_ref, phases)
-    # Queries sit at random fractions between reference loop parameters (never on a reference).
-    frac = _rng(cfg, 3).uniform(0.25, 0.75, size=cfg.n_query)
-    s_q = 2 * math.pi * (np.arange(cfg.n_query) + frac) / max(cfg.n_query, 1)
-    c2w_q = _trajectory(cfg, s_q, phases, _query_offsets(cfg, s_q, phases))
-    # Boxes must clear every camera of a densely sampled reference and query path.
-    s_dense = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
-    dense = np.concatenate([
-        _trajectory(cfg, s_dense, phases)[:, :2, 3],
-        _trajectory(cfg, s_dense, phases, _query_offsets(cfg, s_dense, phases))[:, :2, 3]])
-    boxes = _place_boxes(cfg, _rng(cfg, 1), dense)
-    size = np.asarray(cfg.room_size, float)
+    """Room(s), boxes, intrinsics and both trajectories of the scene for ``cfg``
+    (deterministic). Several rooms: one loop, its queries and its boxes per room, then the
+    partition walls."""
+    bounds = room_bounds(cfg)
+    n_ref, n_q = cfg.room_frames()
+    refs, queries, boxes, ref_room, q_room = [], [], [], [], []
+    half_t = cfg.wall_thickness / 2
+    for r in range(cfg.n_rooms):
+        cx = float(0.5 * (bounds[r] + bounds[r + 1])) if cfg.n_rooms > 1 else 0.0
+        w = float(bounds[r + 1] - bounds[r])
+        traj = functools.partial(_trajectory, cfg, center_x=cx, width=w)
+        phases = _rng(cfg, 0, r).uniform(0.0, 2 * math.pi, size=11)
+        s_ref = 2 * math.pi * np.arange(n_ref[r]) / n_ref[r]
+        refs.append(traj(s_ref, phases))
+        # Queries sit at random fractions between reference loop parameters (never on a
+        # reference).
+        frac = _rng(cfg, 3, r).uniform(0.25, 0.75, size=n_q[r])
+        s_q = 2 * math.pi * (np.arange(n_q[r]) + frac) / max(n_q[r], 1)
+        queries.append(traj(s_q, phases, _query_offsets(cfg, s_q, phases)))
+        # Boxes must clear every camera of a densely sampled reference and query path.
+        s_dense = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
+        dense = np.concatenate([
+            traj(s_dense, phases)[:, :2, 3],
+            traj(s_dense, phases, _query_offsets(cfg, s_dense, phases))[:, :2, 3]])
+        x_range = None
+        if cfg.n_rooms > 1:
+            x_range = (float(bounds[r]) + (half_t if r > 0 else 0.0),
+                       float(bounds[r + 1]) - (half_t if r < cfg.n_rooms - 1 else 0.0))
+        boxes += _place_boxes(cfg, _rng(cfg, 1, r), dense, x_range)
+        ref_room += [r] * n_ref[r]
+        q_room += [r] * n_q[r]
+    boxes += _partition_walls(cfg, bounds)
+    size = np.array([bounds[-1] - bounds[0], cfg.room_size[1], cfg.room_size[2]], float)
     room_min = np.array([-size[0] / 2, -size[1] / 2, 0.0])
-    return Layout(room_min, room_min + size, boxes, intrinsics(cfg), c2w_ref, c2w_q)
+    return Layout(room_min, room_min + size, tuple(boxes), intrinsics(cfg),
+                  np.concatenate(refs), np.concatenate(queries), bounds,
+                  np.asarray(ref_room, np.int64), np.asarray(q_room, np.int64))
 
 
 # ----------------------------------------------------------------------------- faces
@@ -618,8 +744,11 @@ def build_world(cfg: SyntheticConfig, layout: Layout | None = None) -> World:
     fcs = faces(layout)
     rng = _rng(cfg, 2)
     textures = [mip_pyramid(face_texture(rng, fc.size, cfg)) for fc in fcs]
-    lx, _, lz = cfg.room_size
-    lights = np.array([[-lx / 4, 0.0, lz - 0.4], [lx / 4, 0.0, lz - 0.4]])
+    lz = cfg.room_size[2]
+    # Two lights per room, a quarter of its width either side of its centre.
+    lights = np.array([[c + s * w / 4, 0.0, lz - 0.4]
+                       for c, w in zip(layout.room_centers(), cfg.widths, strict=True)
+                       for s in (-1.0, 1.0)])
     return World(layout, fcs, textures, lights, float(cfg.texels_per_m))
 
 
@@ -714,9 +843,19 @@ def render_frame(world: World, K: np.ndarray, c2w: np.ndarray, width: int, heigh
 # ----------------------------------------------------------------------------- output
 
 
+def config_dict(cfg: SyntheticConfig) -> dict:
+    """The config as JSON values, the multi-room fields left out while at their defaults."""
+    d = dataclasses.asdict(cfg)
+    default = SyntheticConfig()
+    for k in _ROOM_FIELDS:
+        if d[k] == getattr(default, k) or (k in ("door_width", "wall_thickness")
+                                           and cfg.n_rooms == 1):
+            del d[k]
+    return json.loads(json.dumps(d))
+
+
 def _config_record(cfg: SyntheticConfig) -> dict:
-    return {"generator": GENERATOR, "version": GENERATOR_VERSION,
-            "config": json.loads(json.dumps(dataclasses.asdict(cfg)))}
+    return {"generator": GENERATOR, "version": GENERATOR_VERSION, "config": config_dict(cfg)}
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -731,7 +870,8 @@ def _frame_paths(out: Path, seq: int, i: int) -> tuple[Path, Path, Path]:
 
 
 def _all_frames(cfg: SyntheticConfig) -> list[tuple[int, int]]:
-    return [(1, i) for i in range(cfg.n_reference)] + [(2, i) for i in range(cfg.n_query)]
+    return ([(1, i) for i in range(cfg.total_reference)]
+            + [(2, i) for i in range(cfg.total_query)])
 
 
 def _is_complete(out: Path, cfg: SyntheticConfig) -> bool:
@@ -814,17 +954,25 @@ def _readme(cfg: SyntheticConfig, layout: Layout) -> str:
     qstats = (f"query offsets to the nearest reference: {dq.min() * 100:.1f}-{dq.max() * 100:.1f}"
               f" cm (median {np.median(dq) * 100:.1f}), {aq.min():.1f}-{aq.max():.1f} deg "
               f"(median {np.median(aq):.1f})\n" if len(dq) else "")
+    if cfg.n_rooms == 1:
+        what = (f"A procedurally textured room of {cfg.room_size[0]} x {cfg.room_size[1]} x "
+                f"{cfg.room_size[2]} m with {len(layout.boxes)} boxes")
+    else:
+        what = (f"{cfg.n_rooms} procedurally textured rooms in a row along x (widths "
+                f"{', '.join(f'{w:g}' for w in cfg.widths)} m, {cfg.room_size[1]} m deep, "
+                f"{cfg.room_size[2]} m high) joined by {cfg.door_width:g} m doorways, with "
+                f"{len(layout.boxes)} boxes (the last {2 * (cfg.n_rooms - 1)} are the partition "
+                "walls); each room has its own camera loop")
     return (
         "vrs-jax embedded synthetic scene (generated by vrs_jax.data.synthetic)\n\n"
-        f"A procedurally textured room of {cfg.room_size[0]} x {cfg.room_size[1]} x "
-        f"{cfg.room_size[2]} m with {len(layout.boxes)} boxes, ray-cast with {cfg.supersample}x"
+        f"{what}, ray-cast with {cfg.supersample}x"
         f"{cfg.supersample} supersampling and mip-mapped textures. Seed {cfg.seed}.\n"
         "World frame: metres, z up, floor at z = 0, room centred on x = y = 0.\n"
         f"{box_lines}\n"
         "Layout (7Scenes):\n"
-        f"  seq-01/  {cfg.n_reference} reference frames on a smooth loop (TrainSplit: "
+        f"  seq-01/  {cfg.total_reference} reference frames on a smooth loop (TrainSplit: "
         "sequence1)\n"
-        f"  seq-02/  {cfg.n_query} query frames on a different path near it (TestSplit: "
+        f"  seq-02/  {cfg.total_query} query frames on a different path near it (TestSplit: "
         "sequence2)\n"
         "  frame-XXXXXX.color.png  8-bit RGB\n"
         "  frame-XXXXXX.depth.png  16-bit z-depth in millimetres, registered to the colour "
@@ -835,7 +983,7 @@ def _readme(cfg: SyntheticConfig, layout: Layout) -> str:
         f"Intrinsics: fx = fy = {K[0, 0]:.4f}, cx = {K[0, 2]:.2f}, cy = {K[1, 2]:.2f}, "
         f"{cfg.width} x {cfg.height}.\n"
         f"{qstats}"
-        f"Config: {json.dumps(dataclasses.asdict(cfg))}\n"
+        f"Config: {json.dumps(config_dict(cfg))}\n"
     )
 
 

@@ -45,7 +45,9 @@ from vrs_jax.nerf import ilm as ilm_lib
 from vrs_jax.nerf.ilm import ILM
 
 KIND = "vrs_jax.map"
-FORMAT_VERSION = 3
+# 3: quantised storage (vrs_jax.egm.map: keypoints, points, global descriptors; float16 NeRF)
+# 4: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
+FORMAT_VERSION = 4
 META = "map.json"
 EGM_FILE = "egm.npz"
 DESC_FILE = "descriptors.npz"

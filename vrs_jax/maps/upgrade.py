@@ -74,8 +74,11 @@ def load_format2(folder: str | Path) -> tuple[map_io.Map, dict]:
         k_max=int(meta["k_max"]),
         local_desc=None if desc is None else np.split(desc.astype(np.float32), splits))
     ilm = ilm_lib.from_bytes(map_io._read_checked(d, map_io.ILM_FILE, meta),
-                             d / map_io.ILM_FILE)
-    cfg = configio.from_dict(MapConfig, meta["config"], p)
+                             d / map_io.ILM_FILE, upgrade=True)
+    conf = meta["config"]
+    if isinstance(conf, dict) and isinstance(conf.get("nerf"), dict):
+        conf = {**conf, "nerf": {"cluster_method": "kmeans", **conf["nerf"]}}  # format 4
+    cfg = configio.from_dict(MapConfig, conf, p)
     src = configio.from_dict(map_io.MapSource, meta["source"], p)
     return map_io.Map(egm=egm, ilm=ilm, config=cfg, source=src), meta
 

@@ -25,6 +25,7 @@ from vrs_jax import configio
 from vrs_jax.errors import VrsError
 
 ENCODINGS = ("ipe", "hashgrid")
+CLUSTER_METHODS = ("kmeans", "grid")  # nerf/clusters.py METHODS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +99,10 @@ class NerfConfig:
     patch_ray_fraction: float = 0.5
     patch_pool_max_rays: int = 4_000_000  # cap on the pool (memory: 48 B per ray)
     cluster_overlap: float = 0.2  # image also joins cluster b if |x-c_b| <= 1.2 |x-c_own|
+    # How the reference cameras are divided (nerf/clusters.py): "kmeans" (K-means++ on the
+    # camera centres, the paper's) or "grid" (a uniform grid of n_clusters equal cells over
+    # the cameras' bounding box: the baseline benchmarks/clusters.py compares with).
+    cluster_method: str = "kmeans"
 
     # --- loop / rendering
     render_chunk: int = 4096  # rays per jitted chunk when rendering full views
@@ -117,6 +122,9 @@ class NerfConfig:
         if self.encoding not in ENCODINGS:
             raise VrsError(f"unknown NeRF encoding {self.encoding!r}; choose from "
                            f"{', '.join(ENCODINGS)}")
+        if self.cluster_method not in CLUSTER_METHODS:
+            raise VrsError(f"unknown cluster method {self.cluster_method!r}; choose from "
+                           f"{', '.join(CLUSTER_METHODS)}")
 
     def to_dict(self) -> dict[str, Any]:
         return configio.to_dict(self)

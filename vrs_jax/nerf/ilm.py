@@ -23,7 +23,8 @@ from vrs_jax.errors import VrsError
 from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.model import Field, init_params, select_field
 
-FORMAT_VERSION = 1
+# 2: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
+FORMAT_VERSION = 2
 _META = "__meta__"
 
 
@@ -113,8 +114,14 @@ def load_ilm(path: str | Path) -> ILM:
     return from_bytes(p.read_bytes(), p)
 
 
-def from_bytes(raw: bytes, p: Path) -> ILM:
-    """Inverse of :func:`to_bytes` (``p`` names the file in errors)."""
+# Header configs of earlier ILM format versions -> the current one (maps.upgrade uses them).
+_OLD_CONFIGS = {1: lambda c: {**c, "cluster_method": "kmeans"}}  # 2: cluster_method added
+
+
+def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
+    """Inverse of :func:`to_bytes` (``p`` names the file in errors); ``upgrade`` also reads
+    the earlier format versions (their config completed with the defaults of its new
+    fields)."""
     try:
         with np.load(io.BytesIO(raw), allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -128,7 +135,9 @@ def from_bytes(raw: bytes, p: Path) -> ILM:
         raise VrsError("corrupt ILM map header", p) from None
     if meta.get("format") != "vrs_jax.ilm":
         raise VrsError("not an ILM map", p)
-    if meta.get("format_version") != FORMAT_VERSION:
+    if upgrade and meta.get("format_version") in _OLD_CONFIGS:
+        meta["config"] = _OLD_CONFIGS[meta["format_version"]](meta.get("config") or {})
+    elif meta.get("format_version") != FORMAT_VERSION:
         raise VrsError(f"ILM map format version {meta.get('format_version')} is not supported "
                        f"(expected {FORMAT_VERSION}); retrain the map", p)
     cfg = NerfConfig.from_dict(meta["config"], p)

@@ -270,7 +270,8 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
         raise VrsError(f"{cfg.n_clusters} clusters requested but only {len(refs)} reference "
                        "images", scene.root)
     clustering = clusters_lib.cluster_cameras(refs.centers, cfg.n_clusters,
-                                              cfg.cluster_overlap, seed=cfg.seed)
+                                              cfg.cluster_overlap, seed=cfg.seed,
+                                              method=cfg.cluster_method)
     clusters_lib.check_nonempty(clustering.membership)
     members, counts = data_lib.pad_members(clustering.membership)
     background = np.asarray(scene.background if scene.background is not None else (0, 0, 0),
