@@ -299,8 +299,10 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
         assert 0.0 <= f["own_keypoint_rate"] <= 1.0
         assert 0 <= f["correct_matches_per_view"] <= f["matches_per_view"] \
             <= f["keypoints_per_view"]
-    # the real patches are read and described exactly as the baseline map's descriptors
-    assert r["float32"]["real_desc_vs_baseline_max_abs"] < 2e-3  # the map stores float16
+    # the real patches are read and described as the baseline map's descriptors were: the
+    # same up to the map's storage (keypoints quantised to 1/32 px, angle to pi/256, scale to
+    # 1/256 of its log range; a patch read elsewhere differs by ~0.3 somewhere)
+    assert r["float32"]["real_desc_vs_baseline_max_abs"] < 0.08
     mean_valid = np.asarray(loaded.egm.kp_mask).sum(1)
     assert r["float32"]["keypoints_per_view"] == pytest.approx(
         mean_valid[np.unique(np.round(np.linspace(0, len(mean_valid) - 1, 3))

@@ -1,6 +1,6 @@
 """Train the implicit map (per-cluster Mip-NeRFs) on any supported dataset, render views.
 
-    python -m experiments.train_nerf --format nerf --root ../shared/data/nerf_synthetic_lego_200 \
+    python -m experiments.train_nerf --format nerf --root /data/lego \
         --query-every 8 --near 2 --far 6 --config cpu-small --minutes 10 --out runs/lego
 
 Writes into --out only:

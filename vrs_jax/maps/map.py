@@ -116,7 +116,9 @@ class Map:
 
 def _npz(arrays: dict[str, np.ndarray], compressed: bool = False) -> bytes:
     buf = io.BytesIO()
-    (np.savez_compressed if compressed else np.savez)(buf, **arrays)
+    # into memory; fileio writes the bytes
+    save = np.savez_compressed if compressed else np.savez
+    save(buf, **arrays)
     return buf.getvalue()
 
 
