@@ -116,9 +116,10 @@ class Map:
 
 def _npz(arrays: dict[str, np.ndarray], compressed: bool = False) -> bytes:
     buf = io.BytesIO()
-    # into memory; fileio writes the bytes
-    save = np.savez_compressed if compressed else np.savez
-    save(buf, **arrays)
+    if compressed:
+        np.savez_compressed(buf, **arrays)  # into memory; fileio-exempt (fileio writes them)
+    else:
+        np.savez(buf, **arrays)
     return buf.getvalue()
 
 
