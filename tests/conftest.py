@@ -52,3 +52,30 @@ def tiny_map(small_synthetic_scene, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_map") / "map"
     maps.build_map(scene, out, maps.get_config("test"), progress=False, log=lambda s: None)
     return out
+
+
+@pytest.fixture(scope="session")
+def toy_nerf(tmp_path_factory) -> Path:
+    """The toy sphere as a Blender-style NeRF dataset (transforms_train.json), read-only for
+    the tests that train on it."""
+    import json
+    import math
+
+    import numpy as np
+
+    from vrs_jax import geometry
+    from vrs_jax.nerf.toy import make_toy_scene
+
+    root = tmp_path_factory.mktemp("toy_nerf")
+    scene = make_toy_scene(root / "train", n_images=8, size=16, query_every=0)
+    frames = []
+    for i, name in enumerate(scene.names):
+        R, c = geometry.pose_inverse(scene.R[i], scene.t[i])  # camera-to-world, OpenCV
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = R, c
+        c2w = geometry.opengl_to_opencv_c2w(c2w)  # the same axis flip converts back
+        frames.append({"file_path": f"./train/{name[:-4]}", "transform_matrix": c2w.tolist()})
+    fov = 2 * math.atan(0.5 * 16 / scene.K[0, 0, 0])
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": fov,
+                                                            "frames": frames}))
+    return root

@@ -3,33 +3,18 @@
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
 
 from benchmarks import nerf as bench
-from vrs_jax import geometry
 from vrs_jax.cli import train_nerf
-from vrs_jax.nerf.toy import make_toy_scene
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    """The toy scene as a Blender-style NeRF dataset (transforms_train.json)."""
-    root = tmp_path_factory.mktemp("toy_nerf")
-    scene = make_toy_scene(root / "train", n_images=8, size=16, query_every=0)
-    frames = []
-    for i, name in enumerate(scene.names):
-        R, c = geometry.pose_inverse(scene.R[i], scene.t[i])  # camera-to-world, OpenCV
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = R, c
-        c2w = geometry.opengl_to_opencv_c2w(c2w)  # the same axis flip converts back
-        frames.append({"file_path": f"./train/{name[:-4]}", "transform_matrix": c2w.tolist()})
-    fov = 2 * math.atan(0.5 * 16 / scene.K[0, 0, 0])
-    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": fov,
-                                                            "frames": frames}))
-    return root
+def dataset(toy_nerf):
+    """The toy scene as a Blender-style NeRF dataset (conftest)."""
+    return toy_nerf
 
 
 def test_train_nerf_cli_writes_map_renders_metrics(dataset, tmp_path, capsys):

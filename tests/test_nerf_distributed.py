@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 import socket
 import subprocess
@@ -14,35 +13,17 @@ import jax
 import numpy as np
 import pytest
 
-from vrs_jax import geometry
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf import distributed
 from vrs_jax.nerf import train as T
 from vrs_jax.nerf.config import get_config
 from vrs_jax.nerf.ilm import load_ilm
-from vrs_jax.nerf.toy import make_toy_scene
 
 REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
 # evaluation, checkpoints and metric reads mid-run (every 3 steps): the collective paths
 EVERY = {"eval_every": 3, "checkpoint_every": 3, "log_every": 3}
-
-
-def _toy_dataset(root: Path) -> Path:
-    """The toy scene as a Blender-style dataset (as tests/test_nerf_cli.py)."""
-    scene = make_toy_scene(root / "train", n_images=8, size=16, query_every=0)
-    frames = []
-    for i, name in enumerate(scene.names):
-        R, c = geometry.pose_inverse(scene.R[i], scene.t[i])
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = R, c
-        frames.append({"file_path": f"./train/{name[:-4]}",
-                       "transform_matrix": geometry.opengl_to_opencv_c2w(c2w).tolist()})
-    fov = 2 * math.atan(0.5 * 16 / scene.K[0, 0, 0])
-    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": fov,
-                                                            "frames": frames}))
-    return root
 
 
 def _free_port() -> int:
@@ -51,8 +32,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_train_the_same_map_as_one(tmp_path):
-    root = _toy_dataset(tmp_path / "data")
+def test_two_processes_train_the_same_map_as_one(toy_nerf, tmp_path):
+    root = toy_nerf
     out = tmp_path / "two"
     port = _free_port()
     args = [sys.executable, "-m", "experiments.train_nerf", "--format", "nerf", "--root",

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import shutil
 import signal
@@ -91,27 +90,6 @@ UNWRITABLE = ["parent_is_file", "proc",
               pytest.param("chmod", marks=pytest.mark.skipif(
                   IS_ROOT, reason="running as root: chmod 0o555 does not stop writes (the "
                                   "parent_is_file and proc cases cover it)"))]
-
-
-@pytest.fixture(scope="module")
-def toy_nerf(tmp_path_factory) -> Path:
-    """The toy sphere as a Blender-style NeRF dataset (transforms_train.json)."""
-    from vrs_jax import geometry
-    from vrs_jax.nerf.toy import make_toy_scene
-
-    root = tmp_path_factory.mktemp("toy_nerf")
-    scene = make_toy_scene(root / "train", n_images=8, size=16, query_every=0)
-    frames = []
-    for i, name in enumerate(scene.names):
-        R, c = geometry.pose_inverse(scene.R[i], scene.t[i])
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = R, c
-        frames.append({"file_path": f"./train/{name[:-4]}",
-                       "transform_matrix": geometry.opengl_to_opencv_c2w(c2w).tolist()})
-    fov = 2 * math.atan(0.5 * 16 / scene.K[0, 0, 0])
-    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": fov,
-                                                            "frames": frames}))
-    return root
 
 
 def nerf_args(root: Path, out: Path, steps: int, *extra: str) -> list[str]:
