@@ -320,6 +320,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     from vrs_jax.localize import STAGE_NAMES
     from vrs_jax.localize.batch import localize_scene
     from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query
+    from vrs_jax.localize.stages import guided_on
 
     key = {"version": RUNS_VERSION, "map": map_stamp(ctx.map_dir), "cfg": repr(cfg),
            "queries": list(ctx.queries.names), "source": source_hash()}
@@ -358,7 +359,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
         s["measured_at"] = now()
         out[which] = s
     s = out["final"]
-    s["first_pass"] = out["first"] if cfg.guided_passes else None
+    s["first_pass"] = out["first"] if guided_on(cfg) else None
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, {"key": key, "summary": s})
     return {**s, "reused": False, "record": str(path)}

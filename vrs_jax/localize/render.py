@@ -136,7 +136,8 @@ def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
         return 0.0
     size = (cfg.patches or m.config.features.patches).size
     per_image = np.asarray(m.egm.kp_mask).sum(axis=1).mean() * size ** 2
-    passes = 1 + (cfg.guided_passes if cfg.guided_render else 0)
+    guided = cfg.guided_render and cfg.source in cfg.guided_sources
+    passes = 1 + (cfg.guided_passes if guided else 0)
     return float(passes * min(cfg.top_k, m.egm.num_images) * per_image)
 
 

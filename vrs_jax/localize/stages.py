@@ -205,4 +205,9 @@ STAGE_NAMES = tuple(name for name, _ in STAGES)
 def stages_for(cfg: LocalizeConfig) -> tuple[tuple[str, Stage], ...]:
     """The stages a config runs (real-patch mode renders nothing; guided only with passes)."""
     return tuple((n, f) for n, f in STAGES if not (n == "render" and cfg.source == "real")
-                 and not (n == "guided" and cfg.guided_passes == 0))
+                 and not (n == "guided" and not guided_on(cfg)))
+
+
+def guided_on(cfg: LocalizeConfig) -> bool:
+    """Whether the config makes guided passes for its source."""
+    return cfg.guided_passes > 0 and cfg.source in cfg.guided_sources
