@@ -91,3 +91,24 @@ def test_float16_storage_halves_the_parameters_and_loads_as_float32(tmp_path):
         np.testing.assert_array_equal(np.asarray(b),
                                       np.asarray(a).astype(np.float16).astype(np.float32))
     np.testing.assert_array_equal(np.asarray(back.near), np.asarray(m.near))
+
+
+def test_version1_files_load_only_when_upgrading(tmp_path):
+    """An ILM file of format 1 (no cluster_method in its config) is refused on load and read
+    as K-means clustered by maps.upgrade's path."""
+    import io
+
+    ilm = _ilm()
+    with np.load(io.BytesIO(ilm_lib.to_bytes(ilm)), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["__meta__"].tobytes().decode())
+    meta["format_version"] = 1
+    del meta["config"]["cluster_method"]
+    arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    p = tmp_path / "ilm.npz"
+    with pytest.raises(VrsError, match="version 1"):
+        ilm_lib.from_bytes(buf.getvalue(), p)
+    back = ilm_lib.from_bytes(buf.getvalue(), p, upgrade=True)
+    assert back.config == ilm.config and back.config.cluster_method == "kmeans"

@@ -97,7 +97,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     "paper": LocalizeConfig(top_k=5, query_keypoints=2048, depth_guided=False),
     # Two CPU cores: top-3 retrieval, 1024 query keypoints, depth-guided sampling with 16
     # samples per ray around the keypoint's 3D point plus 8 resampled where the surface is
-    # (on dtu_scan24 1.2 dB and 9 points of own-keypoint rate over 16 in one pass, for 1.5x
+    # (on dtu_scan24 1.1 dB and 9 points of own-keypoint rate over 16 in one pass, for 1.5x
     # the MLP evaluations; benchmarks.fidelity), and in render mode one guided pass rendered
     # from the first pose (benchmarks.localize: within 2 cm / 2 deg on lego 62% instead of 46%,
     # on fern 1 of 4 instead of 0, on dtu_scan24 within 1 cm 10 of 10 instead of 6, for twice

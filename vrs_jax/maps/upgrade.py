@@ -77,7 +77,7 @@ def load_format2(folder: str | Path) -> tuple[map_io.Map, dict]:
                              d / map_io.ILM_FILE, upgrade=True)
     conf = meta["config"]
     if isinstance(conf, dict) and isinstance(conf.get("nerf"), dict):
-        conf = {**conf, "nerf": {"cluster_method": "kmeans", **conf["nerf"]}}  # format 4
+        conf = {**conf, "nerf": ilm_lib.upgrade_config(1, conf["nerf"])}  # format 2 = ILM v1
     cfg = configio.from_dict(MapConfig, conf, p)
     src = configio.from_dict(map_io.MapSource, meta["source"], p)
     return map_io.Map(egm=egm, ilm=ilm, config=cfg, source=src), meta

@@ -114,8 +114,14 @@ def load_ilm(path: str | Path) -> ILM:
     return from_bytes(p.read_bytes(), p)
 
 
-# Header configs of earlier ILM format versions -> the current one (maps.upgrade uses them).
-_OLD_CONFIGS = {1: lambda c: {**c, "cluster_method": "kmeans"}}  # 2: cluster_method added
+def upgrade_config(version: int, config: dict) -> dict:
+    """A NeRF config dict written by an earlier ILM format ``version`` (a map of format 2
+    stores the same one), completed to the current fields. Version 2 added cluster_method
+    (every earlier map was clustered with K-means)."""
+    return {"cluster_method": "kmeans", **config} if version == 1 else config
+
+
+OLD_VERSIONS = (1,)
 
 
 def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
@@ -135,8 +141,8 @@ def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
         raise VrsError("corrupt ILM map header", p) from None
     if meta.get("format") != "vrs_jax.ilm":
         raise VrsError("not an ILM map", p)
-    if upgrade and meta.get("format_version") in _OLD_CONFIGS:
-        meta["config"] = _OLD_CONFIGS[meta["format_version"]](meta.get("config") or {})
+    if upgrade and meta.get("format_version") in OLD_VERSIONS:
+        meta["config"] = upgrade_config(meta["format_version"], meta.get("config") or {})
     elif meta.get("format_version") != FORMAT_VERSION:
         raise VrsError(f"ILM map format version {meta.get('format_version')} is not supported "
                        f"(expected {FORMAT_VERSION}); retrain the map", p)

@@ -272,7 +272,7 @@ def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: A
     ray. The MLP is the shared one, so both passes are ordinary mip-NeRF levels; the
     resampled pass puts its frustums where the field's surface is, which is what the MLP
     learned to colour (measured on dtu_scan24: 16 + 8 samples give the keypoint patches
-    1.2 dB and 9 points of own-keypoint rate more than 16 samples in one pass, see
+    1.1 dB and 9 points of own-keypoint rate more than 16 samples in one pass, see
     ``benchmarks.fidelity``).
 
     Args:
