@@ -52,7 +52,7 @@ from vrs_jax.errors import VrsError
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_WORK = "outputs/bench_work"
 DEFAULT_JSON_DIR = "outputs/benchmarks"
-RUNS_VERSION = 2
+RUNS_VERSION = 3
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -318,8 +318,8 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     """
     from vrs_jax.eval.report import summarize
     from vrs_jax.localize import STAGE_NAMES
-    from vrs_jax.localize.batch import localize_scene
-    from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_query
+    from vrs_jax.localize.batch import localize_scene, rays_rendered
+    from vrs_jax.localize.render import nerf_evals_per_ray
     from vrs_jax.localize.stages import guided_on
 
     key = {"version": RUNS_VERSION, "map": map_stamp(ctx.map_dir), "cfg": repr(cfg),
@@ -352,7 +352,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
         if which == "first":  # the first pass alone: no guided stage, its rays only
             cfg1 = dataclasses.replace(cfg, guided_passes=0)
             s["timing_s"] = {**s["timing_s"], "guided": 0.0}
-            s["rays_per_query"] = rays_per_query(ctx.m, cfg1)
+            s["rays_per_query"] = rays_rendered(ctx.m, cfg1, results, first=True)
             s["nerf_evals_per_query"] = s["rays_per_query"] * nerf_evals_per_ray(ctx.m, cfg1)
         s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
         s["wall_s"] = wall

@@ -16,7 +16,7 @@ from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.eval.report import summarize
 from vrs_jax.localize.batch import localize_scene
-from vrs_jax.localize.stages import unique_pairs
+from vrs_jax.localize.stages import first_occurrence, near_any, unique_pairs
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +120,72 @@ def test_guided_pass_does_not_make_a_correct_pose_worse(loaded, source):
     assert changed > 0  # the guided matches replaced the first pass's somewhere
     s = localize.run_stages(m, _query(m, queries, 0, cfg1), cfg1)
     assert "result" in s
+
+
+def test_early_exit_renders_fewer_candidates_and_still_localizes(loaded):
+    """With an early exit the queries whose first candidate gives enough inliers render one
+    image instead of top_k, and stay localized; an unreachable threshold renders them all and
+    gives the same result as no early exit."""
+    m, queries = loaded
+    vrs = m.without_descriptors()
+    cfg0 = localize.get_config("test", top_k=3)
+    cfg_ee = localize.get_config("test", top_k=3, early_exit_inliers=12)
+    cfg_never = localize.get_config("test", top_k=3, early_exit_inliers=10**6)
+    saved = 0
+    for i in range(3):
+        q = _query(m, queries, i, cfg0)
+        r0 = localize.localize(vrs, q, cfg0)
+        full = int(np.asarray(m.egm.kp_mask)[np.asarray(r0.retrieved)].sum())
+        assert int(r0.n_rendered) == int(r0.n_rendered_first) == full
+        never = localize.localize(vrs, q, cfg_never)
+        assert int(never.n_rendered) == full
+        np.testing.assert_allclose(np.asarray(never.t), np.asarray(r0.t), atol=1e-5)
+        ee = localize.localize(vrs, q, cfg_ee)
+        assert int(ee.n_rendered) <= full
+        saved += int(ee.n_rendered) < full
+        if bool(ee.success):
+            e = geometry.pose_errors(ee.R, ee.t, queries.R[i], queries.t[i])[0]
+            assert float(e) < 0.05 and int(ee.n_inliers) >= 12
+    assert saved > 0  # the exit happened somewhere (the test can fail)
+
+
+def test_first_occurrence_and_near_any_match_numpy():
+    rng = np.random.default_rng(0)
+    ids = rng.integers(0, 20, 200)
+    ok = rng.random(200) < 0.7
+    got = np.asarray(first_occurrence(jnp.asarray(ids), jnp.asarray(ok)))
+    seen, want = set(), np.zeros(200, bool)
+    for i in range(200):
+        if ok[i] and ids[i] not in seen:
+            seen.add(ids[i])
+            want[i] = True
+    np.testing.assert_array_equal(got, want)
+    uv = rng.uniform(0, 100, (50, 2)).astype(np.float32)
+    uq = rng.uniform(0, 100, (80, 2)).astype(np.float32)
+    mq = rng.random(80) < 0.8
+    d = np.linalg.norm(uv[:, None] - uq[None], axis=-1)
+    want = ((d < 6.0) & mq[None]).any(1)
+    np.testing.assert_array_equal(np.asarray(near_any(uv, uq, jnp.asarray(mq), 6.0)), want)
+
+
+def test_guided_pass_renders_each_point_once_near_query_keypoints(loaded):
+    """The guided pass renders at most one patch per distinct 3D point of the retrieved
+    images, and none whose projection has no query keypoint within the radius."""
+    m, queries = loaded
+    vrs = m.without_descriptors()
+    cfg = localize.get_config("test", guided_passes=1)
+    q = _query(m, queries, 0, cfg)
+    r = localize.localize(vrs, q, cfg)
+    assert bool(r.success)
+    pid = np.asarray(m.egm.point_idx)[np.asarray(r.retrieved)].reshape(-1)
+    pid = pid[pid >= 0]
+    X = np.asarray(m.egm.points3d)[np.unique(pid)]
+    uv, z = geometry.project(q.K, r.R_first, r.t_first, X)
+    uv_q = np.asarray(q.points2d)[np.asarray(q.mask)]
+    near = (np.linalg.norm(np.asarray(uv)[:, None] - uv_q[None], axis=-1)
+            < cfg.guided_radius).any(1) & (np.asarray(z) > 0)
+    guided = int(r.n_rendered) - int(r.n_rendered_first)
+    assert 0 < guided <= int(near.sum()) < len(pid)
 
 
 def test_stages_stop_after_matching(loaded):

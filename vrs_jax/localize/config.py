@@ -66,6 +66,11 @@ class LocalizeConfig:
     guided_radius: float = 8.0
     guided_ratio: float = 0.9
     guided_render: bool = True
+    # Early exit over the retrieved list (render mode): the candidates are rendered best
+    # first, and after each one the correspondences so far go to RANSAC; once its seed has
+    # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all
+    # top_k are rendered.
+    early_exit_inliers: int = 0
     # Rays rendered per jitted chunk (bounds memory: chunk x samples x MLP width floats).
     render_chunk: int = 8192
     pnp: PnPConfig = PnPConfig()
@@ -83,6 +88,8 @@ class LocalizeConfig:
             raise VrsError(f"LocalizeConfig.guided_sources must be among {SOURCES}")
         if self.guided_passes < 0 or self.guided_radius <= 0:
             raise VrsError("LocalizeConfig.guided_passes must be >= 0 and guided_radius > 0")
+        if self.early_exit_inliers < 0:
+            raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
         if self.query_keypoints < 1:
             raise VrsError("LocalizeConfig.query_keypoints must be >= 1")
         if self.source == "real" and self.patches is not None:

@@ -98,7 +98,8 @@ class Localizer:
         config's (the named configs render).
       cache_mb: render mode: keep the rendered descriptors of recently retrieved reference
         images within this many MB (:class:`~vrs_jax.localize.cache.DescriptorCache`); 0: no
-        cache, every query renders its references (the fused jitted ``localize``).
+        cache, every query renders its references (the fused jitted ``localize``). The
+        cached path renders every retrieved reference it misses (no early exit).
       devices: ``localize_batch`` splits its batch over these devices (a list, the first N of
         ``jax.devices()``, or None: all of them); one device: a plain vmapped batch.
     """
@@ -163,17 +164,19 @@ class Localizer:
         and described (one jitted call per missing reference), then the remaining stages."""
         s = run_stages(self.map, q, self.cfg, until="retrieval", jitted=JITTED_STAGES)
         idx = np.asarray(s["idx"])
-        descs = []
+        descs, n_rendered = [], 0
         for i in idx:
             d = self.cache.get(int(i))
             if d is None:
                 one = {"idx": jnp.asarray([i], jnp.int32)}
                 one.update(JITTED_STAGES["render"](self.map, q, self.cfg, one))
+                n_rendered += int(one["n_rendered"])
                 d = np.asarray(JITTED_STAGES["describe"](self.map, q, self.cfg, one)["desc"][0])
                 self.cache.put(int(i), d)
             descs.append(d)
         s["desc"] = jnp.asarray(np.stack(descs))
         s["desc_mask"] = self.map.egm.kp_mask[s["idx"]]
+        s["n_rendered"] = jnp.int32(n_rendered)
         return run_stages(self.map, q, self.cfg, jitted=JITTED_STAGES, state=s,
                           after="describe")["result"]
 

@@ -107,14 +107,17 @@ def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig
 
 
 def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: PatchConfig,
-                   cfg: LocalizeConfig) -> tuple[Array, Array, Array]:
+                   cfg: LocalizeConfig, keep: Array | None = None
+                   ) -> tuple[Array, Array, Array]:
     """Reference image ``i``'s map keypoints rendered from another (pinhole) viewpoint.
 
     Each keypoint is moved into the camera (K [3, 3], R [3, 3], t [3]) through its 3D point
     (:func:`vrs_jax.features.rays.transfer_keypoints`) and its patch rendered there with the
     image's cluster NeRF: what that camera would see around the point, in the keypoint's
-    transferred frame. Returns grey patches [K_max, P, P], the moved keypoints [K_max, 4]
-    and their validity [K_max] (linked to a 3D point in front of the camera).
+    transferred frame. ``keep`` [K_max] bool (None: all) selects the keypoints to render.
+    Returns grey patches [K_max, P, P] (zeros where not rendered), the moved keypoints
+    [K_max, 4] and their validity [K_max] (kept, linked to a 3D point in front of the
+    camera): only valid keypoints are rendered.
     """
     egm, ilm = m.egm, m.ilm
     field = select_field(ilm.fields, ilm.image_cluster[i])
@@ -123,15 +126,21 @@ def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: Patc
     kp, z = rays_mod.transfer_keypoints(egm.keypoints[i], X, egm.K[i], egm.R[i], egm.t[i],
                                         egm.dist[i], K, R, t)
     valid = egm.kp_mask[i] & (pid >= 0) & (z > 1e-6)
+    if keep is not None:
+        valid = valid & keep
     kp = jnp.where(valid[:, None], kp, jnp.array([0.0, 0.0, 1.0, 0.0], kp.dtype))
-    gray = render_keypoints(field, kp, egm.kp_mask[i], jnp.where(valid, z, 1.0), K, R, t,
-                            None, ilm.near[i], ilm.far[i], patches, ilm.config, cfg)
+    # the valid keypoints first, so that the renderer stops after the last of them
+    order = jnp.argsort(~valid, stable=True)
+    gray = render_keypoints(field, kp[order], valid[order], jnp.where(valid, z, 1.0)[order],
+                            K, R, t, None, ilm.near[i], ilm.far[i], patches, ilm.config, cfg)
+    gray = jnp.zeros_like(gray).at[order].set(jnp.where(valid[order, None, None], gray, 0.0))
     return gray, kp, valid
 
 
 def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
-    """Mean patch rays rendered per query (valid keypoints of k reference images x P^2, once
-    more per guided pass that renders, when the first pass succeeds)."""
+    """Patch rays a query renders at most (valid keypoints of k reference images x P^2, once
+    more per guided pass that renders); an early exit and the guided pass's selection render
+    fewer: ``LocalizeResult.n_rendered`` counts them per query."""
     if cfg.source != "render":
         return 0.0
     size = (cfg.patches or m.config.features.patches).size

@@ -53,6 +53,8 @@ class LocalizeResult:
     correspondences fed to RANSAC. retrieved: [k] int32 reference indices, best first.
     R_first, t_first, n_inliers_first: the first pass's pose and inliers (equal to R, t,
     n_inliers unless a guided pass improved them).
+    n_rendered, n_rendered_first: [] int32 keypoint patches rendered in all passes and in the
+    first (0 in real-patch mode; each patch is P^2 rays).
     """
 
     R: Array
@@ -65,6 +67,8 @@ class LocalizeResult:
     R_first: Array
     t_first: Array
     n_inliers_first: Array
+    n_rendered: Array
+    n_rendered_first: Array
 
 
 def check(m: Map, cfg: LocalizeConfig) -> None:
@@ -83,19 +87,67 @@ def retrieval(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 
 
 def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
-    """Rendered grey patches [k, K_max, P, P] of the retrieved images' map keypoints."""
+    """Rendered grey patches [k, K_max, P, P] of the retrieved images' map keypoints,
+    ``rendered`` [k] bool (the candidates rendered: all of them unless an early exit) and
+    ``n_rendered`` [] int32 (patches rendered)."""
     patches = cfg.patches or m.config.features.patches
-    return {"gray": jax.lax.map(lambda i: render_reference(m, i, patches, cfg), s["idx"])}
+    idx = s["idx"]
+
+    def one(i):
+        return render_reference(m, i, patches, cfg)
+
+    k = idx.shape[0]
+    if cfg.early_exit_inliers <= 0 or k == 1:
+        gray, rendered = jax.lax.map(one, idx), jnp.ones(k, bool)
+    else:
+        gray, rendered = early_exit_render(m, q, cfg, idx, one)
+    n = jnp.sum(m.egm.kp_mask[idx] & rendered[:, None]).astype(jnp.int32)
+    return {"gray": gray, "rendered": rendered, "n_rendered": n}
+
+
+def early_exit_render(m: Map, q: Query, cfg: LocalizeConfig, idx: Array,
+                      one: Callable[[Array], Array]) -> tuple[Array, Array]:
+    """Render the candidates idx [k] best first, stopping once the correspondences so far
+    give a RANSAC seed with ``cfg.early_exit_inliers`` inliers (describe, matching and
+    ransac as below, on the rendered candidates only). Returns gray [k, K_max, P, P] (zeros
+    where not rendered) and rendered [k] bool."""
+    k = idx.shape[0]
+    blank = jax.eval_shape(one, idx[0])
+
+    def confident(gray, rendered):
+        st = {"idx": idx, "gray": gray, "rendered": rendered}
+        for fn in (describe, matching, ransac):
+            st.update(fn(m, q, cfg, st))
+        return st["ok_seed"] & (jnp.sum(st["inl0"] & st["ok"]) >= cfg.early_exit_inliers)
+
+    def step(carry, c):
+        gray, rendered, done = carry
+        g = jax.lax.cond(done, lambda: jnp.zeros(blank.shape, blank.dtype),
+                         lambda: one(idx[c]))
+        gray = gray.at[c].set(g)
+        rendered = rendered.at[c].set(~done)
+        # the last candidate needs no decision
+        done = jax.lax.cond(done | (c == k - 1), lambda: done,
+                            lambda: confident(gray, rendered))
+        return (gray, rendered, done), None
+
+    init = (jnp.zeros((k,) + blank.shape, blank.dtype), jnp.zeros(k, bool), jnp.bool_(False))
+    (gray, rendered, _), _ = jax.lax.scan(step, init, jnp.arange(k))
+    return gray, rendered
 
 
 def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
-    """Descriptors [k, K_max, D] and mask [k, K_max] of the candidates' keypoints."""
+    """Descriptors [k, K_max, D] and mask [k, K_max] of the candidates' keypoints (without
+    the candidates an early exit left unrendered)."""
     idx = s["idx"]
+    mask = m.egm.kp_mask[idx]
     if cfg.source == "real":
         desc = m.egm.local_desc[idx]
     else:
         desc = describe_patches(s["gray"], m.config.features.descriptor)
-    return {"desc": desc, "desc_mask": m.egm.kp_mask[idx]}
+        if "rendered" in s:
+            mask = mask & s["rendered"][:, None]
+    return {"desc": desc, "desc_mask": mask}
 
 
 def unique_pairs(qi: Array, pid: Array, ok: Array) -> Array:
@@ -146,30 +198,57 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     t = jnp.where(ok, pose.t, m.egm.t[top])
     res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
-                         R_first=R, t_first=t, n_inliers_first=pose.n_inliers)
+                         R_first=R, t_first=t, n_inliers_first=pose.n_inliers,
+                         n_rendered=s.get("n_rendered", jnp.int32(0)),
+                         n_rendered_first=s.get("n_rendered", jnp.int32(0)))
     return {"result": res, "inliers": pose.inliers}
+
+
+def first_occurrence(ids: Array, ok: Array) -> Array:
+    """[M] bool: ``ok`` entries whose id no earlier ``ok`` entry has (ids [M] int)."""
+    order = jnp.lexsort((jnp.arange(ids.shape[0]), ids, ~ok))  # valid first, by id, by index
+    i_s, ok_s = ids[order], ok[order]
+    same = jnp.concatenate([jnp.zeros(1, bool), (i_s[1:] == i_s[:-1]) & ok_s[:-1]])
+    return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
+
+
+def near_any(uv: Array, uv_q: Array, mask_q: Array, radius: float) -> Array:
+    """[N] bool: some valid query keypoint (uv_q [Nq, 2], mask_q [Nq]) lies within
+    ``radius`` pixels of uv [N, 2]."""
+    d2 = jnp.sum((uv[:, None, :] - uv_q[None, :, :]) ** 2, -1)
+    return jnp.any((d2 < jnp.float32(radius) ** 2) & mask_q[None, :], axis=1)
 
 
 def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeResult
                 ) -> LocalizeResult:
     """One guided pass from ``res``'s pose (a no-op unless it succeeded): candidates are the
     retrieved images' keypoints with 3D points [k * K_max]; returns the refined result when
-    it has at least as many inliers, else ``res``."""
+    it has at least as many inliers, else ``res``.
+
+    Render mode renders only what the guided matching can use: each 3D point once (in the
+    first retrieved image that sees it) and only where its projection has a query keypoint
+    within ``guided_radius``."""
     idx = s["idx"]
     pid = m.egm.point_idx[idx].reshape(-1)  # [C]
     X = m.egm.points3d[jnp.maximum(pid, 0)]  # [C, 3]
+    uv_r, z = geometry.project(q.K, res.R, res.t, X)
+    cand = m.egm.kp_mask[idx].reshape(-1) & (pid >= 0) & (z > 1e-6)
 
     def run(_):
+        n_new = jnp.int32(0)
         if cfg.source == "render" and cfg.guided_render:
             patches = cfg.patches or m.config.features.patches
+            keep = (first_occurrence(pid, cand)
+                    & near_any(uv_r, q.points2d, q.mask, cfg.guided_radius))
             gray, _, valid = jax.lax.map(
-                lambda i: render_at_pose(m, i, q.K, res.R, res.t, patches, cfg), idx)
+                lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
+                (idx, keep.reshape(idx.shape[0], -1)))
             desc = describe_patches(gray, m.config.features.descriptor)
             mask = valid.reshape(-1)
+            n_new = jnp.sum(mask).astype(jnp.int32)
         else:
             desc, mask = s["desc"], s["desc_mask"].reshape(-1)
-        uv_r, z = geometry.project(q.K, res.R, res.t, X)
-        mask = mask & (pid >= 0) & (z > 1e-6)
+        mask = mask & cand
         j, ok, _ = guided_match(q.points2d, q.desc, q.mask, uv_r,
                                 desc.reshape(pid.shape[0], -1), mask, pid,
                                 cfg.guided_radius, cfg.guided_ratio)
@@ -180,7 +259,8 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
         pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
         return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
                            n_inliers=pick(pose.n_inliers, res.n_inliers),
-                           n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches))
+                           n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
+                           n_rendered=res.n_rendered + n_new)
 
     return jax.lax.cond(res.success, run, lambda _: res, None)
 
