@@ -271,6 +271,28 @@ def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, config: str 
     return localize.get_config(config or ctx.m.config.name, source=mode, **overrides)
 
 
+def localize_overrides(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields only)."""
+    from vrs_jax.localize.config import LocalizeConfig
+
+    defaults = LocalizeConfig()
+    out: dict[str, Any] = {}
+    for item in items:
+        key, _, val = item.partition("=")
+        key = key.strip().replace("-", "_")
+        cur = getattr(defaults, key, None)
+        if not _ or not isinstance(cur, (bool, int, float)):
+            raise VrsError(f"--localize expects KEY=VALUE of a number/bool field, got {item!r}")
+        try:
+            if isinstance(cur, bool):
+                out[key] = val.lower() in ("1", "true", "yes")
+            else:
+                out[key] = type(cur)(val)
+        except ValueError:
+            raise VrsError(f"bad value for {key}: {val!r}") from None
+    return out
+
+
 def _file_stamp(p: Path) -> list:
     st = p.stat()
     return [str(p.resolve()), st.st_size, st.st_mtime_ns]

@@ -125,28 +125,6 @@ def scene_options(args) -> dict[str, Any]:
 RENDER_FIELDS = {"num_samples_coarse", "num_samples_fine", "resample_padding", "lindisp"}
 
 
-def localize_overrides(items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields only)."""
-    from vrs_jax.localize.config import LocalizeConfig
-
-    defaults = LocalizeConfig()
-    out: dict[str, Any] = {}
-    for item in items:
-        key, _, val = item.partition("=")
-        key = key.strip().replace("-", "_")
-        cur = getattr(defaults, key, None)
-        if not _ or not isinstance(cur, (bool, int, float)):
-            raise VrsError(f"--localize expects KEY=VALUE of a number/bool field, got {item!r}")
-        try:
-            if isinstance(cur, bool):
-                out[key] = val.lower() in ("1", "true", "yes")
-            else:
-                out[key] = type(cur)(val)
-        except ValueError:
-            raise VrsError(f"bad value for {key}: {val!r}") from None
-    return out
-
-
 def to_float16(ilm):
     """The ILM with every floating parameter rounded to float16 (and back to float32)."""
     import jax
@@ -244,6 +222,7 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
 
 
 def run(args) -> dict[str, Any]:
+    from benchmarks import common
     from benchmarks.common import environment, fmt, table, write_json
     from vrs_jax import localize, maps
     from vrs_jax.nerf import ilm as ilm_lib
@@ -280,7 +259,7 @@ def run(args) -> dict[str, Any]:
     if tuple(refs.names) != tuple(m.names):
         raise VrsError("the map and the scene list different reference images", args.root)
     lcfg = localize.get_config(m.config.name, source="render",
-                               **localize_overrides(args.localize))
+                               **common.localize_overrides(args.localize))
     render_over = parse_overrides(args.render)
     if set(render_over) - RENDER_FIELDS:
         raise VrsError(f"--render accepts only {', '.join(sorted(RENDER_FIELDS))}")

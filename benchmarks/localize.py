@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "interval (~6x slower rendering on cpu-small)")
     p.add_argument("--top-k", type=int, default=None,
                    help="retrieved reference images (default: the config's)")
+    p.add_argument("--localize", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a number/bool LocalizeConfig field in the render and real "
+                        "rows (repeatable), e.g. early_exit_inliers=40 or guided_passes=0")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
     return p
@@ -140,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         from vrs_jax.errors import VrsError
 
         raise VrsError(f"--modes must list some of {', '.join(MODES)}, got {args.modes!r}")
+    overrides = common.localize_overrides(args.localize)
     doc = common.base_doc("localize", args, argv)
     ctxs, skipped = common.prepare_scenes(args)
     rows, maps = [], {}
@@ -151,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             if mode == "sift":
                 rows.append(sift_row(ctx, args, scale))
                 continue
-            over = {}
+            over = dict(overrides)
             if args.top_k is not None:
                 over["top_k"] = args.top_k
             if mode == "render-full" or (mode == "render" and args.full_sampling):
