@@ -30,7 +30,7 @@ from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query, prepare_query
-from vrs_jax.localize.render import nerf_evals_per_ray
+from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_patch
 from vrs_jax.localize.run import localize, localize_stacked, localize_timed
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 from vrs_jax.maps import Map
@@ -88,14 +88,14 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
 
 def rays_rendered(m: Map, cfg: LocalizeConfig, results: Sequence[LocalizeResult | None],
                   first: bool = False) -> float:
-    """Mean patch rays rendered per query (``n_rendered`` x P^2; ``first``: the first pass's
+    """Mean patch rays rendered per query (``n_rendered`` x rays per patch; ``first``: the
+    first pass.s
     ``n_rendered_first``) over the queries with a result; 0 in real-patch mode."""
     counts = [int(r.n_rendered_first if first else r.n_rendered) for r in results
               if r is not None]
     if cfg.source != "render" or not counts:
         return 0.0
-    size = (cfg.patches or m.config.features.patches).size
-    return float(np.mean(counts) * size ** 2)
+    return float(np.mean(counts) * rays_per_patch(m, cfg))
 
 
 # ----------------------------------------------------------------------------- batches

@@ -71,6 +71,11 @@ class LocalizeConfig:
     # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all
     # top_k are rendered.
     early_exit_inliers: int = 0
+    # Render every render_stride-th sample of each patch grid row and column (both ends
+    # included: (P - 1) / stride + 1 per side) and interpolate the samples between them
+    # linearly; the rays keep the full grid's cone radius, so the render carries the real
+    # patch's anti-aliasing blur. 1: every sample. (P - 1) must be a multiple of it.
+    render_stride: int = 1
     # Rays rendered per jitted chunk (bounds memory: chunk x samples x MLP width floats).
     render_chunk: int = 8192
     pnp: PnPConfig = PnPConfig()
@@ -88,6 +93,8 @@ class LocalizeConfig:
             raise VrsError(f"LocalizeConfig.guided_sources must be among {SOURCES}")
         if self.guided_passes < 0 or self.guided_radius <= 0:
             raise VrsError("LocalizeConfig.guided_passes must be >= 0 and guided_radius > 0")
+        if self.render_stride < 1:
+            raise VrsError("LocalizeConfig.render_stride must be >= 1")
         if self.early_exit_inliers < 0:
             raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
         if self.query_keypoints < 1:

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax import geometry
+from vrs_jax.errors import VrsError
 from vrs_jax.features import rays as rays_mod
 from vrs_jax.features.descriptor import rgb_to_gray
 from vrs_jax.features.patches import PatchConfig
@@ -72,6 +73,13 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
     """
     P = patches.size
     pr = rays_mod.patch_rays(kp, K, R, t, patches, dist)
+    stride = cfg.render_stride
+    if stride > 1:
+        if patches.mode == "literal" or (P - 1) % stride:
+            raise VrsError(f"render_stride {stride} needs canonical patches with P - 1 a "
+                           f"multiple of it (P = {P}, mode {patches.mode})")
+        pr = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
+        P = pr.radii.shape[1]
     shape = (kp.shape[0], P, P)
     if cfg.depth_guided:
         near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
@@ -93,7 +101,25 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
         rgb = render_flat(field, flat(pr.origins), flat(pr.directions), flat(pr.radii),
                           flat(near_r), flat(far_r), n_kp * P * P, nerf_cfg, cfg)
         rgb = rgb.reshape(shape + (3,))
-    return rgb_to_gray(rgb)
+    gray = rgb_to_gray(rgb)
+    if stride > 1:
+        W = jnp.asarray(interpolation_matrix(P, stride))  # [P_full, P]
+        gray = jnp.einsum("ia,kab,jb->kij", W, gray, W)
+    return gray
+
+
+def interpolation_matrix(n: int, stride: int) -> np.ndarray:
+    """[(n - 1) * stride + 1, n] float32: linear interpolation of n samples onto the grid
+    ``stride`` times finer whose every stride-th sample they are (both ends shared)."""
+    m = (n - 1) * stride + 1
+    pos = np.arange(m) / stride
+    i0 = np.minimum(np.floor(pos).astype(int), n - 2) if n > 1 else np.zeros(m, int)
+    frac = pos - i0
+    W = np.zeros((m, n), np.float32)
+    W[np.arange(m), i0] = 1.0 - frac
+    if n > 1:
+        W[np.arange(m), i0 + 1] += frac
+    return W
 
 
 def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
@@ -143,11 +169,16 @@ def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
     fewer: ``LocalizeResult.n_rendered`` counts them per query."""
     if cfg.source != "render":
         return 0.0
-    size = (cfg.patches or m.config.features.patches).size
-    per_image = np.asarray(m.egm.kp_mask).sum(axis=1).mean() * size ** 2
+    per_image = np.asarray(m.egm.kp_mask).sum(axis=1).mean() * rays_per_patch(m, cfg)
     guided = cfg.guided_render and cfg.source in cfg.guided_sources
     passes = 1 + (cfg.guided_passes if guided else 0)
     return float(passes * min(cfg.top_k, m.egm.num_images) * per_image)
+
+
+def rays_per_patch(m: Map, cfg: LocalizeConfig) -> int:
+    """Rays rendered per keypoint patch: P^2, or ((P - 1) / render_stride + 1)^2."""
+    size = (cfg.patches or m.config.features.patches).size
+    return ((size - 1) // cfg.render_stride + 1) ** 2
 
 
 def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:
