@@ -100,7 +100,9 @@ def row_of(scene: str, mode: str, s: dict) -> dict:
             "median_inliers": s["median_inliers"], "timing_s": timing,
             "localize_s_per_query": s["localize_s_per_query"],
             "rays_per_query": s["rays_per_query"],
-            "nerf_evals_per_query": s["nerf_evals_per_query"], "map_bytes": s["map_bytes"],
+            "nerf_evals_per_query": s["nerf_evals_per_query"],
+            "full_image_evals_per_query": s.get("full_image_evals_per_query", 0.0),
+            "map_bytes": s["map_bytes"],
             "per_query": s["per_query"], "measured_at": s["measured_at"],
             "reused": s["reused"], "record": s["record"]}
 
@@ -126,11 +128,28 @@ def accuracy_table(rows: list[dict]) -> str:
 
 def latency_table(rows: list[dict]) -> str:
     ms = lambda x: common.fmt(None if x is None else 1000.0 * x, 1)  # noqa: E731
+    real = {r["scene"]: r for r in rows if r["mode"] == "real"}
+
+    def vs_real(r, prep: bool):
+        b = real.get(r["scene"])
+        if b is None or r["mode"] == "real":
+            return "-"
+        p = lambda x: x["localize_s_per_query"] + (  # noqa: E731
+            (x["timing_s"]["query_preparation"] or 0.0) if prep else 0.0)
+        return common.fmt(p(r) / p(b), 1)
+
+    def fewer(r):
+        full, ev = r.get("full_image_evals_per_query") or 0.0, r["nerf_evals_per_query"]
+        return common.fmt(full / ev, 1) if full and ev else "-"
+
     return common.table(
-        ["scene / mode", *STAGES, "total", "query prep", "rays/query", "NeRF evals/query"],
+        ["scene / mode", *STAGES, "total", "query prep", "x real", "x real (with prep)",
+         "rays/query", "NeRF evals/query", "x fewer than full images"],
         [[f"{r['scene']} / {r['mode']}", *(ms(r["timing_s"][k]) for k in STAGES),
           ms(r["localize_s_per_query"]), ms(r["timing_s"]["query_preparation"]),
-          common.fmt(r["rays_per_query"], 0), common.fmt(r["nerf_evals_per_query"], 0)]
+          vs_real(r, False), vs_real(r, True),
+          common.fmt(r["rays_per_query"], 0), common.fmt(r["nerf_evals_per_query"], 0),
+          fewer(r)]
          for r in rows if r["mode"] != "sift"],
         title="Median latency per query (ms); the SIFT reference's times are in the JSON")
 

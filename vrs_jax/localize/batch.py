@@ -30,7 +30,7 @@ from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query, prepare_query
-from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_patch
+from vrs_jax.localize.render import full_image_evals, nerf_evals_per_ray, rays_per_patch
 from vrs_jax.localize.run import localize, localize_stacked, localize_timed
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 from vrs_jax.maps import Map
@@ -79,6 +79,9 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
         "rays_per_query": rays,
         "nerf_evals_per_query": rays * nerf_evals_per_ray(m, cfg) if cfg.source == "render"
         else 0.0,
+        "full_image_evals_per_query": float(np.mean(
+            [full_image_evals(m, r.retrieved) for r in results if r is not None] or [0.0]))
+        if cfg.source == "render" else 0.0,
         "timing_s": timing,
         "n_success": int(sum(bool(r.success) for r in results if r is not None)),
         "errors": errors,

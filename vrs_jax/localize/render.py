@@ -187,3 +187,12 @@ def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:
         return cfg.narrow_samples + cfg.narrow_fine
     c = m.config.nerf
     return c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine
+
+
+def full_image_evals(m: Map, retrieved: np.ndarray) -> int:
+    """MLP evaluations to render the reference images ``retrieved`` [k] in full with the map's
+    coarse + fine sampling (every pixel one ray): the cost patch rendering is compared with."""
+    c = m.config.nerf
+    per_ray = c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine
+    sizes = np.asarray(m.egm.sizes, np.int64)[np.asarray(retrieved)]
+    return int(np.prod(sizes, axis=-1).sum() * per_ray)
