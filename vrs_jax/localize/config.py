@@ -112,12 +112,23 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # Two CPU cores: top-3 retrieval, 1024 query keypoints, depth-guided sampling with 16
     # samples per ray around the keypoint's 3D point plus 8 resampled where the surface is
     # (on dtu_scan24 1.1 dB and 9 points of own-keypoint rate over 16 in one pass, for 1.5x
-    # the MLP evaluations; benchmarks.fidelity), and in render mode one guided pass rendered
-    # from the first pose (benchmarks.localize: within 2 cm / 2 deg on lego 62% instead of 46%,
-    # on fern 1 of 4 instead of 0, on dtu_scan24 within 1 cm 10 of 10 instead of 6, for twice
-    # the render time). Real mode makes none: its guided pass gained on fern and lost on lego.
+    # the MLP evaluations; 8 + 8 loses 0.6 dB and 6.5 points; benchmarks.fidelity), and in
+    # render mode one guided pass rendered from the first pose (benchmarks.localize: within
+    # 2 cm / 2 deg on lego 62% instead of 46%, on fern 1 of 4 instead of 0, on dtu_scan24
+    # within 1 cm 10 of 10 instead of 6; a second pass changed nothing). Real mode makes none:
+    # its guided pass gained on fern and lost on lego. What is rendered is cut three ways at
+    # unchanged recall at 2 cm / 2 deg on the four benchmark scenes but one dtu_scan24 query
+    # that its first pass leaves 3 cm off (README): every second patch sample rendered
+    # (render_stride 2: 64 rays per 15 x 15 patch instead of 225; on dtu_scan24 18.33 dB and
+    # 35.0% own keypoint against 18.37 dB and 36.2% rendering all), an early exit once
+    # RANSAC has 30 inliers (first-pass rays 3x fewer on the synthetic room, 2.3x on lego,
+    # 3.1x on fern; dtu_scan24's candidates give ~30 and seldom exit), and the guided pass's
+    # selection (each point once, near a query keypoint: 0.4-0.6x the rays of the first
+    # pass). Chunks of 2048 rays: a guided pass renders a few thousand rays per image, and
+    # a chunk renders whole.
     "cpu-small": LocalizeConfig(top_k=3, query_keypoints=1024, narrow_samples=16,
-                                narrow_fine=8, guided_passes=1, guided_sources=("render",)),
+                                narrow_fine=8, guided_passes=1, guided_sources=("render",),
+                                render_stride=2, early_exit_inliers=30, render_chunk=2048),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,
