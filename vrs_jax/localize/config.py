@@ -123,7 +123,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # 35.0% own keypoint against 18.37 dB and 36.2% rendering all), an early exit once
     # RANSAC has 30 inliers (first-pass rays 3x fewer on the synthetic room, 2.3x on lego,
     # 3.1x on fern; dtu_scan24's candidates give ~30 and seldom exit), and the guided pass's
-    # selection (each point once, near a query keypoint: 0.4-0.6x the rays of the first
+    # selection (each point once, near a query keypoint: 0.45-0.65x the rays of a full first
     # pass). Chunks of 2048 rays: a guided pass renders a few thousand rays per image, and
     # a chunk renders whole.
     "cpu-small": LocalizeConfig(top_k=3, query_keypoints=1024, narrow_samples=16,
