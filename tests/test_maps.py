@@ -151,8 +151,9 @@ def test_named_localize_config_comments_match_values():
     assert (paper.top_k, paper.query_keypoints, paper.depth_guided, paper.guided_passes) == (
         5, 2048, False, 0)
     assert (cpu.top_k, cpu.query_keypoints, cpu.depth_guided, cpu.narrow_samples,
-            cpu.narrow_fine, cpu.guided_passes, cpu.guided_sources) == (
-        3, 1024, True, 16, 8, 1, ("render",))
+            cpu.narrow_fine, cpu.guided_passes, cpu.guided_sources, cpu.render_stride,
+            cpu.early_exit_inliers, cpu.render_chunk) == (
+        3, 1024, True, 16, 8, 1, ("render",), 2, 30, 2048)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 
