@@ -366,7 +366,8 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     results, info = localize_scene(ctx.m, ctx.queries, cfg, progress=progress)
     wall = time.perf_counter() - t0
     first = [None if r is None else r.replace(R=r.R_first, t=r.t_first,
-                                               n_inliers=r.n_inliers_first) for r in results]
+                                               n_inliers=r.n_inliers_first,
+                                               n_rendered=r.n_rendered_first) for r in results]
     out = {}
     for which, res in (("final", results), ("first", first)):
         s = summarize(ctx.queries, res, info, ctx.m, cfg, ctx.map_dir)
@@ -374,7 +375,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
         if which == "first":  # the first pass alone: no guided stage, its rays only
             cfg1 = dataclasses.replace(cfg, guided_passes=0)
             s["timing_s"] = {**s["timing_s"], "guided": 0.0}
-            s["rays_per_query"] = rays_rendered(ctx.m, cfg1, results, first=True)
+            s["rays_per_query"] = rays_rendered(ctx.m, cfg1, first)
             s["nerf_evals_per_query"] = s["rays_per_query"] * nerf_evals_per_ray(ctx.m, cfg1)
         s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
         s["wall_s"] = wall
@@ -388,7 +389,8 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
 
 
 def _per_query(q, results: list) -> dict[str, list]:
-    """Per-query errors (inf / 180 for a query without a result), success, inliers, matches."""
+    """Per-query errors (inf / 180 for a query without a result), success, inliers, matches,
+    patches rendered."""
     from vrs_jax.eval import metrics
 
     has = np.array([r is not None for r in results]) & np.asarray(q.has_pose, bool)
@@ -401,7 +403,8 @@ def _per_query(q, results: list) -> dict[str, list]:
             "success": [bool(r is not None and r.success) for r in results],
             "fallback": [bool(r is not None and r.fallback) for r in results],
             "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
-            "matches": [int(r.n_matches) if r is not None else 0 for r in results]}
+            "matches": [int(r.n_matches) if r is not None else 0 for r in results],
+            "rendered": [int(r.n_rendered) if r is not None else 0 for r in results]}
 
 
 def _inf(xs: list, missing: float = math.inf) -> list[float]:

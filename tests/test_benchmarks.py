@@ -56,10 +56,14 @@ def test_localize_benchmark_json(localize_doc, loaded):
         assert all(_finite(r["timing_s"][k]) for k in ("retrieval", "matching", "ransac"))
         cfg = r["localize_config"]
         if r["mode"] == "render":  # depth-guided
-            # rays per query = k x mean valid keypoints per image x P^2
-            mean_valid = np.asarray(egm.kp_mask).sum(1).mean()
-            expect = cfg["top_k"] * mean_valid * r["patch_size"] ** 2
+            # rays per query = mean patches rendered x P^2 (the test config renders every
+            # sample of the k retrieved images' valid keypoints: no early exit, no guided pass)
+            rendered = np.asarray(r["per_query"]["rendered"])
+            top = np.sort(np.asarray(egm.kp_mask).sum(1))[::-1][:cfg["top_k"]].sum()
+            assert np.all((rendered > 0) & (rendered <= top))
+            expect = rendered.mean() * r["patch_size"] ** 2
             assert r["rays_per_query"] == pytest.approx(expect)
+            assert 0 < r["nerf_evals_per_query"] < r["full_image_evals_per_query"]
             assert r["nerf_evals_per_query"] == pytest.approx(
                 expect * (cfg["narrow_samples"] + cfg["narrow_fine"]))
             assert r["timing_s"]["render"] > 0
