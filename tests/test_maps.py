@@ -137,8 +137,8 @@ def test_named_config_comments_match_values():
     assert (paper.nerf.net_depth, paper.nerf.net_width, paper.nerf.num_samples_coarse,
             paper.nerf.num_samples_fine, paper.nerf.max_steps) == (8, 256, 128, 128, 200_000)
     assert (cpu.egm.features.keypoints.max_keypoints, cpu.egm.k_max) == (512, 256)
-    assert (cpu.nerf.net_depth, cpu.nerf.net_width, cpu.nerf.num_samples_coarse,
-            cpu.nerf.max_steps) == (3, 128, 32, 4000)
+    assert (cpu.nerf.encoding, cpu.nerf.net_depth, cpu.nerf.net_width,
+            cpu.nerf.num_samples_coarse, cpu.nerf.max_steps) == ("hashgrid", 2, 64, 32, 4000)
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
             test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
         128, 64, 9, 64, 800)
@@ -153,7 +153,7 @@ def test_named_localize_config_comments_match_values():
     assert (cpu.top_k, cpu.query_keypoints, cpu.depth_guided, cpu.narrow_samples,
             cpu.narrow_fine, cpu.guided_passes, cpu.guided_sources, cpu.render_stride,
             cpu.early_exit_inliers, cpu.render_chunk) == (
-        3, 1024, True, 16, 8, 1, ("render",), 2, 30, 2048)
+        3, 1024, True, 32, 16, 1, ("render",), 2, 30, 2048)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 

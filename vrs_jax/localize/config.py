@@ -109,25 +109,25 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # rendered with the map's full coarse + fine sampling (depth_guided False); no guided
     # pass (the paper has none, and it has not been measured at this scale).
     "paper": LocalizeConfig(top_k=5, query_keypoints=2048, depth_guided=False),
-    # Two CPU cores: top-3 retrieval, 1024 query keypoints, depth-guided sampling with 16
-    # samples per ray around the keypoint's 3D point plus 8 resampled where the surface is
-    # (on dtu_scan24 1.1 dB and 9 points of own-keypoint rate over 16 in one pass, for 1.5x
-    # the MLP evaluations; 8 + 8 loses 0.6 dB and 6.5 points; benchmarks.fidelity), and in
-    # render mode one guided pass rendered from the first pose (benchmarks.localize: within
-    # 2 cm / 2 deg on lego 62% instead of 46%, on fern 1 of 4 instead of 0, on dtu_scan24
-    # within 1 cm 10 of 10 instead of 6; a second pass changed nothing). Real mode makes none:
-    # its guided pass gained on fern and lost on lego. What is rendered is cut three ways at
-    # unchanged recall at 2 cm / 2 deg on the four benchmark scenes but one dtu_scan24 query
-    # that its first pass leaves 3 cm off (README): every second patch sample rendered
-    # (render_stride 2: 64 rays per 15 x 15 patch instead of 225; on dtu_scan24 18.33 dB and
-    # 35.0% own keypoint against 18.37 dB and 36.2% rendering all), an early exit once
-    # RANSAC has 30 inliers (first-pass rays 3x fewer on the synthetic room, 2.3x on lego,
-    # 3.1x on fern; dtu_scan24's candidates give ~30 and seldom exit), and the guided pass's
-    # selection (each point once, near a query keypoint: 0.45-0.65x the rays of a full first
-    # pass). Chunks of 2048 rays: a guided pass renders a few thousand rays per image, and
-    # a chunk renders whole.
-    "cpu-small": LocalizeConfig(top_k=3, query_keypoints=1024, narrow_samples=16,
-                                narrow_fine=8, guided_passes=1, guided_sources=("render",),
+    # Two CPU cores: top-3 retrieval, 1024 query keypoints, depth-guided sampling with 32
+    # samples per ray around the keypoint's 3D point plus 16 resampled where the surface is,
+    # on every second patch sample (render_stride 2: 64 rays per 15 x 15 patch instead of 225,
+    # the rest interpolated). Measured on dtu_scan24's reference views with the cpu-small
+    # hash-grid field (benchmarks.fidelity --views 6): a rendered patch's nearest real
+    # descriptor is its own keypoint's 74.3% of the time with 32 + 16 at stride 2, 73.9% with
+    # 48 + 16, 64.5% with 24 + 8, 55.4% with 16 + 8 (55.0% at stride 1: the stride costs
+    # nothing); the grid's thin surfaces need the denser samples. 3072 MLP evaluations per
+    # patch, 0.57x the 225 x (16 + 8) of rendering every sample. Then, in render mode, one
+    # guided pass rendered from the first pose (benchmarks.localize with the IPE field:
+    # within 2 cm / 2 deg on lego 62% instead of 46%, on fern 1 of 4 instead of 0; a second
+    # pass changed nothing); real mode makes none: its guided pass gained on fern and lost on
+    # lego. The guided pass renders each map point once, near a query keypoint (0.45-0.65x
+    # the rays of a full first pass); the first pass stops rendering candidates once RANSAC
+    # has 30 inliers (with the IPE field: first-pass rays 3x fewer on the synthetic room,
+    # 2.3x on lego, 3.1x on fern at unchanged recall at 2 cm / 2 deg). Chunks of 2048 rays:
+    # a guided pass renders a few thousand rays per image, and a chunk renders whole.
+    "cpu-small": LocalizeConfig(top_k=3, query_keypoints=1024, narrow_samples=32,
+                                narrow_fine=16, guided_passes=1, guided_sources=("render",),
                                 render_stride=2, early_exit_inliers=30, render_chunk=2048),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
