@@ -36,7 +36,7 @@ CONFIGS: dict[str, MapConfig] = {
     # 15x15 patches, an 8x256 Mip-NeRF with 128 + 128 samples, 200k steps.
     "paper": MapConfig("paper", egm_build.get_config("paper"), nerf_config.get_config("paper")),
     # Two CPU cores (the demo): 512 keypoints detected and 256 kept, 15x15 patches, a
-    # 16-level hash grid with a 2x64 MLP, 32 + 32 samples, 4000 steps (TRAIN_MINUTES).
+    # 16-level hash grid with a 2x64 MLP, 32 + 32 samples, 4000 steps (7-8 minutes).
     "cpu-small": MapConfig("cpu-small", egm_build.get_config("cpu-small"),
                            nerf_config.get_config("cpu-small")),
     # Tests and `demo --quick`: 128 keypoints detected and 64 kept, 9x9 patches, a 3x64 NeRF,
