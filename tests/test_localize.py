@@ -16,7 +16,7 @@ from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.eval.report import summarize
 from vrs_jax.localize.batch import localize_scene
-from vrs_jax.localize.stages import first_occurrence, near_any, unique_pairs
+from vrs_jax.localize.stages import first_occurrence, near_any
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +153,7 @@ def test_first_occurrence_and_near_any_match_numpy():
     rng = np.random.default_rng(0)
     ids = rng.integers(0, 20, 200)
     ok = rng.random(200) < 0.7
-    got = np.asarray(first_occurrence(jnp.asarray(ids), jnp.asarray(ok)))
+    got = np.asarray(first_occurrence(jnp.asarray(ok), jnp.asarray(ids)))
     seen, want = set(), np.zeros(200, bool)
     for i in range(200):
         if ok[i] and ids[i] not in seen:
@@ -195,11 +195,11 @@ def test_stages_stop_after_matching(loaded):
     assert {"idx", "desc", "uv", "X", "ok"} <= set(s) and "result" not in s
 
 
-def test_unique_pairs_keeps_each_pair_once():
+def test_first_occurrence_keeps_each_pair_once():
     qi = jnp.array([0, 1, 0, 2, 0, 1, 3])
     pid = jnp.array([5, 6, 5, 7, 9, 6, 8])
     ok = jnp.array([True, True, True, True, True, False, False])
-    keep = np.asarray(unique_pairs(qi, pid, ok))
+    keep = np.asarray(first_occurrence(ok, qi, pid))
     # (0,5) twice -> once; (1,6) valid once (its repeat is invalid); (0,9) is another pair
     np.testing.assert_array_equal(keep, [True, True, False, True, True, False, False])
 

@@ -150,15 +150,16 @@ def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     return {"desc": desc, "desc_mask": mask}
 
 
-def unique_pairs(qi: Array, pid: Array, ok: Array) -> Array:
-    """[M] bool: ``ok`` with every repeated (qi, pid) pair but its first occurrence removed.
-
-    Args: qi [M] query keypoint index; pid [M] 3D point index; ok [M] valid entries.
-    """
-    order = jnp.lexsort((pid, qi, ~ok))  # valid first, then by (qi, pid)
-    q_s, p_s, ok_s = qi[order], pid[order], ok[order]
-    same = jnp.concatenate([jnp.zeros(1, bool), (q_s[1:] == q_s[:-1]) & (p_s[1:] == p_s[:-1])
-                            & ok_s[:-1]])
+def first_occurrence(ok: Array, *keys: Array) -> Array:
+    """[M] bool: the ``ok`` entries whose key (one value of each ``keys`` array [M] int) no
+    earlier ``ok`` entry has: each key kept once, at its first valid position."""
+    order = jnp.lexsort((jnp.arange(ok.shape[0]), *keys[::-1], ~ok))  # valid first, by key
+    ok_s = ok[order]
+    same = ok_s[:-1]
+    for k in keys:
+        k_s = k[order]
+        same = same & (k_s[1:] == k_s[:-1])
+    same = jnp.concatenate([jnp.zeros(1, bool), same])
     return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
 
 
@@ -177,7 +178,7 @@ def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     X = m.egm.points3d[jnp.maximum(pid, 0)]  # [k, Kq, 3]
     uv = jnp.broadcast_to(q.points2d[None], X.shape[:2] + (2,))
     qi = jnp.broadcast_to(jnp.arange(j.shape[1])[None], j.shape)
-    ok = unique_pairs(qi.reshape(-1), pid.reshape(-1), ok.reshape(-1))
+    ok = first_occurrence(ok.reshape(-1), qi.reshape(-1), pid.reshape(-1))
     return {"j": j, "uv": uv.reshape(-1, 2), "X": X.reshape(-1, 3), "ok": ok}
 
 
@@ -202,14 +203,6 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          n_rendered=s.get("n_rendered", jnp.int32(0)),
                          n_rendered_first=s.get("n_rendered", jnp.int32(0)))
     return {"result": res, "inliers": pose.inliers}
-
-
-def first_occurrence(ids: Array, ok: Array) -> Array:
-    """[M] bool: ``ok`` entries whose id no earlier ``ok`` entry has (ids [M] int)."""
-    order = jnp.lexsort((jnp.arange(ids.shape[0]), ids, ~ok))  # valid first, by id, by index
-    i_s, ok_s = ids[order], ok[order]
-    same = jnp.concatenate([jnp.zeros(1, bool), (i_s[1:] == i_s[:-1]) & ok_s[:-1]])
-    return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
 
 
 def near_any(uv: Array, uv_q: Array, mask_q: Array, radius: float) -> Array:
@@ -238,7 +231,7 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
         n_new = jnp.int32(0)
         if cfg.source == "render" and cfg.guided_render:
             patches = cfg.patches or m.config.features.patches
-            keep = (first_occurrence(pid, cand)
+            keep = (first_occurrence(cand, pid)
                     & near_any(uv_r, q.points2d, q.mask, cfg.guided_radius))
             gray, _, valid = jax.lax.map(
                 lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),

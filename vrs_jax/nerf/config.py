@@ -150,9 +150,10 @@ PAPER = NerfConfig(name="paper")
 # benchmarks.fidelity) a rendered patch's nearest real descriptor is its own keypoint's
 # 55.0% of the time with a 2 x 64 MLP after a 16-level 2^14 hash grid against 36.2% with the
 # IPE 3 x 128 MLP (patch PSNR 17.0 vs 18.4 dB: the grid renders sharper gradients, slightly
-# misplaced), and localization improves (benchmarks.localize, render mode: dtu_scan24
-# first-pass inliers 65 vs 34, median 0.05 vs 0.12 cm; lego 69% vs 62% within 2 cm / 2 deg).
-# It costs 1.09 MB float16 instead of 0.14 MB, and trains at 10.5 instead of 24 steps/s.
+# misplaced), and localization improves (benchmarks.localize, render mode, both fields with
+# the same 16 + 8 samples and guided pass: dtu_scan24 first-pass inliers 65 vs 34, median
+# 0.05 vs 0.12 cm; lego 69% vs 62% within 2 cm / 2 deg). It costs 1.09 MB float16 instead
+# of 0.14 MB, and trained at 10.5 instead of 24 steps/s (on a shared, loaded machine).
 CPU_SMALL = dataclasses.replace(
     PAPER,
     name="cpu-small",
