@@ -272,7 +272,8 @@ def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, config: str 
 
 
 def localize_overrides(items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields only)."""
+    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields, and
+    optional floats: ``none`` or a number)."""
     from vrs_jax.localize.config import LocalizeConfig
 
     defaults = LocalizeConfig()
@@ -280,7 +281,12 @@ def localize_overrides(items: list[str]) -> dict[str, Any]:
     for item in items:
         key, _, val = item.partition("=")
         key = key.strip().replace("-", "_")
-        cur = getattr(defaults, key, None)
+        cur = getattr(defaults, key, "")
+        if cur is None:  # an optional number: "none" or a float
+            cur = 0.0
+            if val.strip().lower() == "none":
+                out[key] = None
+                continue
         if not _ or not isinstance(cur, (bool, int, float)):
             raise VrsError(f"--localize expects KEY=VALUE of a number/bool field, got {item!r}")
         try:

@@ -263,6 +263,19 @@ def test_table_and_number_formatting():
     assert common.evenly_spaced(5, None).tolist() == list(range(5))
 
 
+def test_localize_overrides_are_typed_and_checked():
+    from vrs_jax.errors import VrsError
+
+    got = common.localize_overrides(["top_k=3", "guided_radius=8", "guided_threshold_px=none",
+                                     "depth-guided=false"])
+    assert got == {"top_k": 3, "guided_radius": 8.0, "guided_threshold_px": None,
+                   "depth_guided": False}
+    assert common.localize_overrides(["guided_threshold_px=2.5"]) == {"guided_threshold_px": 2.5}
+    for bad in ("source=real", "nosuch=1", "top_k", "top_k=three"):
+        with pytest.raises(VrsError):
+            common.localize_overrides([bad])
+
+
 def test_environment_is_the_run_record_environment_plus_extras():
     from vrs_jax import runrecord
 

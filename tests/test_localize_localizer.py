@@ -115,3 +115,28 @@ def test_cached_render_mode_equals_uncached_and_hits(tiny_map, queries):
     for r in (b, c):
         assert bool(r.success) == bool(a.success)
         np.testing.assert_allclose(np.asarray(r.t), np.asarray(a.t), atol=5e-3)
+
+
+def test_cached_path_exits_early_like_the_fused_path(tiny_map, queries):
+    """With an early exit, a cold cache renders the candidates the fused ``localize`` renders
+    (the same rule, best first), and a warm one uses its cached references and renders none;
+    an unreachable threshold renders every miss."""
+    cfg = localize.get_config("test", top_k=3, early_exit_inliers=12)
+    never = localize.get_config("test", top_k=3, early_exit_inliers=10**6)
+    plain = Localizer(tiny_map, cfg)
+    saved = 0
+    for i in range(3):
+        path, K, dist = queries.image_paths[i], queries.K[i], queries.dist[i]
+        a = plain.localize_image(path, K, dist)
+        cold = Localizer(plain.map, cfg, cache_mb=5)
+        b = cold.localize_image(path, K, dist)
+        assert int(b.n_rendered) == int(a.n_rendered_first)
+        if bool(a.success):
+            np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), atol=5e-3)
+        warm = cold.localize_image(path, K, dist)
+        assert int(warm.n_rendered) == 0
+        full = Localizer(plain.map, never, cache_mb=5)
+        full.localize_image(path, K, dist)
+        assert len(full.cache) == 3
+        saved += len(cold.cache) < 3
+    assert saved > 0  # the exit happened somewhere (the test can fail)

@@ -99,7 +99,8 @@ class Localizer:
       cache_mb: render mode: keep the rendered descriptors of recently retrieved reference
         images within this many MB (:class:`~vrs_jax.localize.cache.DescriptorCache`); 0: no
         cache, every query renders its references (the fused jitted ``localize``). The
-        cached path renders every retrieved reference it misses (no early exit).
+        cached path uses every cached reference and renders the missing ones best first,
+        with the config's early exit.
       devices: ``localize_batch`` splits its batch over these devices (a list, the first N of
         ``jax.devices()``, or None: all of them); one device: a plain vmapped batch.
     """
@@ -161,24 +162,48 @@ class Localizer:
 
     def _localize_cached(self, q: Query) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered
-        and described (one jitted call per missing reference), then the remaining stages."""
-        s = run_stages(self.map, q, self.cfg, until="retrieval", jitted=JITTED_STAGES)
+        and described (one jitted call per missing reference), then the remaining stages.
+
+        The cached references cost nothing and are always used; the missing ones are
+        rendered best first, and with ``cfg.early_exit_inliers`` the rest are skipped once
+        the descriptors at hand give a RANSAC seed with that many inliers (the rule of
+        :func:`~vrs_jax.localize.stages.early_exit_render`)."""
+        m, cfg = self.map, self.cfg
+        s = run_stages(m, q, cfg, until="retrieval", jitted=JITTED_STAGES)
         idx = np.asarray(s["idx"])
-        descs, n_rendered = [], 0
-        for i in idx:
-            d = self.cache.get(int(i))
-            if d is None:
-                one = {"idx": jnp.asarray([i], jnp.int32)}
-                one.update(JITTED_STAGES["render"](self.map, q, self.cfg, one))
-                n_rendered += int(one["n_rendered"])
-                d = np.asarray(JITTED_STAGES["describe"](self.map, q, self.cfg, one)["desc"][0])
-                self.cache.put(int(i), d)
-            descs.append(d)
-        s["desc"] = jnp.asarray(np.stack(descs))
-        s["desc_mask"] = self.map.egm.kp_mask[s["idx"]]
+        descs = [self.cache.get(int(i)) for i in idx]
+        have = np.array([d is not None for d in descs])
+        missing = np.flatnonzero(~have)
+        n_rendered = 0
+        for c in missing:
+            if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have):
+                break
+            one = {"idx": jnp.asarray([idx[c]], jnp.int32)}
+            one.update(JITTED_STAGES["render"](m, q, cfg, one))
+            n_rendered += int(one["n_rendered"])
+            descs[c] = np.asarray(JITTED_STAGES["describe"](m, q, cfg, one)["desc"][0])
+            have[c] = True
+            self.cache.put(int(idx[c]), descs[c])
+        s.update(self._described(s, descs, have))
         s["n_rendered"] = jnp.int32(n_rendered)
-        return run_stages(self.map, q, self.cfg, jitted=JITTED_STAGES, state=s,
-                          after="describe")["result"]
+        return run_stages(m, q, cfg, jitted=JITTED_STAGES, state=s, after="describe")["result"]
+
+    def _described(self, s: dict, descs: list, have: np.ndarray) -> dict:
+        """The describe stage's state from per-candidate descriptors (None: not rendered,
+        masked out)."""
+        blank = np.zeros_like(next(d for d in descs if d is not None))
+        desc = np.stack([blank if d is None else d for d in descs])
+        mask = self.map.egm.kp_mask[s["idx"]] & jnp.asarray(have)[:, None]
+        return {"desc": jnp.asarray(desc), "desc_mask": mask}
+
+    def _confident(self, q: Query, s: dict, descs: list, have: np.ndarray) -> bool:
+        """Whether the candidates at hand already give a RANSAC seed with
+        ``cfg.early_exit_inliers`` distinct inliers."""
+        st = {**s, **self._described(s, descs, have)}
+        for name in ("matching", "ransac"):
+            st.update(JITTED_STAGES[name](self.map, q, self.cfg, st))
+        n = int(jnp.sum(st["inl0"] & st["ok"]))
+        return bool(st["ok_seed"]) and n >= self.cfg.early_exit_inliers
 
     def localize_batch(self, images: Sequence[Any], Ks: Sequence[np.ndarray],
                        dists: Sequence[np.ndarray | None] | None = None

@@ -21,6 +21,7 @@ is skipped and describe reads the map's stored real-patch descriptors.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -34,7 +35,7 @@ from vrs_jax.errors import VrsError
 from vrs_jax.features.descriptor import describe as describe_patches
 from vrs_jax.features.matching import guided_match, match
 from vrs_jax.localize.config import LocalizeConfig
-from vrs_jax.localize.pnp import inlier_mask, ransac_pnp, refine_seed
+from vrs_jax.localize.pnp import PnPConfig, inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
 from vrs_jax.localize.render import render_at_pose, render_reference
 from vrs_jax.maps import Map
@@ -212,6 +213,14 @@ def near_any(uv: Array, uv_q: Array, mask_q: Array, radius: float) -> Array:
     return jnp.any((d2 < jnp.float32(radius) ** 2) & mask_q[None, :], axis=1)
 
 
+def guided_pnp(cfg: LocalizeConfig) -> PnPConfig:
+    """The refinement settings of a guided pass: the config's, with the guided pass's own
+    inlier threshold when ``cfg.guided_threshold_px`` is set."""
+    if cfg.guided_threshold_px is None:
+        return cfg.pnp
+    return dataclasses.replace(cfg.pnp, threshold_px=cfg.guided_threshold_px)
+
+
 def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeResult
                 ) -> LocalizeResult:
     """One guided pass from ``res``'s pose (a no-op unless it succeeded): candidates are the
@@ -246,8 +255,9 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
                                 desc.reshape(pid.shape[0], -1), mask, pid,
                                 cfg.guided_radius, cfg.guided_ratio)
         Xq = X[j]
-        inl0 = inlier_mask(res.R, res.t, q.points2d, Xq, ok, q.K, cfg.pnp.threshold_px)
-        pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, cfg.pnp)
+        pnp = guided_pnp(cfg)
+        inl0 = inlier_mask(res.R, res.t, q.points2d, Xq, ok, q.K, pnp.threshold_px)
+        pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, pnp)
         better = pose.success & (pose.n_inliers >= res.n_inliers)
         pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
         return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
