@@ -154,7 +154,7 @@ def test_named_localize_config_comments_match_values():
             cpu.narrow_fine, cpu.guided_passes, cpu.guided_sources, cpu.render_stride,
             cpu.early_exit_inliers, cpu.render_chunk, cpu.guided_radius,
             cpu.guided_threshold_px, cpu.pnp.threshold_px) == (
-        5, 1024, True, 32, 16, 1, ("render",), 2, 30, 2048, 4.0, 3.0, 6.0)
+        5, 1024, True, 32, 16, 1, ("render",), 2, 30, 2048, 4.0, 2.0, 6.0)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 

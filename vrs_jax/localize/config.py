@@ -128,17 +128,18 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # fewer on the synthetic room, 2.3x on lego, 3.1x on fern at unchanged recall at 2 cm /
     # 2 deg), so five candidates cost little more than three. Then, in render mode, one guided
     # pass rendered from the first pose, matched within 4 px of the projections and refined
-    # with a 3 px inlier threshold (the seed's RANSAC keeps 6 px). Against top-3 with 8 px and
+    # with a 2 px inlier threshold (the seed's RANSAC keeps 6 px). Against top-3 with 8 px and
     # 6 px (benchmarks.localize --localize top_k=3 --localize guided_radius=8 --localize
-    # guided_threshold_px=none, the same maps): render median on lego 1.19 cm instead of 1.37,
-    # on fern 1.87 instead of 2.62 (2 of 4 within 2 cm instead of 1), on scan24 0.90 mm
-    # instead of 0.89; real patches within 2 cm / 2 deg on lego 69.2% instead of 53.8%, on
-    # fern 75% instead of 50%. Real mode makes no guided pass: with the IPE-era 8 px pass it
-    # gained on fern and lost on lego. Chunks of 2048 rays: a guided pass renders a few
-    # thousand rays per image, and a chunk renders whole.
+    # guided_threshold_px=none, the same maps): render median on lego 1.18 cm instead of 1.37,
+    # on fern 1.61 instead of 2.62 (3 of 4 within 2 cm instead of 1), on scan24 0.66 mm
+    # instead of 0.89 (0.90 with 3 px); real patches within 2 cm / 2 deg on lego 69.2%
+    # instead of 53.8%, on fern 75% instead of 50%. Real mode makes no guided pass: the same
+    # pass with its stored descriptors gained on fern and scan24 and lost on lego (61.5%
+    # instead of 69.2%), as the IPE-era 8 px pass did. Chunks of 2048 rays: a guided pass
+    # renders a few thousand rays per image, and a chunk renders whole.
     "cpu-small": LocalizeConfig(top_k=5, query_keypoints=1024, narrow_samples=32,
                                 narrow_fine=16, guided_passes=1, guided_sources=("render",),
-                                guided_radius=4.0, guided_threshold_px=3.0,
+                                guided_radius=4.0, guided_threshold_px=2.0,
                                 render_stride=2, early_exit_inliers=30, render_chunk=2048),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
