@@ -133,8 +133,9 @@ def test_cached_path_exits_early_like_the_fused_path(tiny_map, queries):
         assert int(b.n_rendered) == int(a.n_rendered_first)
         if bool(a.success):
             np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), atol=5e-3)
+        assert cold.cache.misses == len(cold.cache) and cold.cache.hits == 0
         warm = cold.localize_image(path, K, dist)
-        assert int(warm.n_rendered) == 0
+        assert int(warm.n_rendered) == 0 and cold.cache.hits == len(cold.cache)
         full = Localizer(plain.map, never, cache_mb=5)
         full.localize_image(path, K, dist)
         assert len(full.cache) == 3

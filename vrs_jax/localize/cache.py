@@ -31,7 +31,8 @@ class DescriptorCache:
         self.evictions = 0
 
     def get(self, i: int) -> np.ndarray | None:
-        """The descriptors of reference ``i`` (float32) or None; a hit becomes most recent."""
+        """The descriptors of reference ``i`` (float32) or None (counted as a miss: the caller
+        renders it); a hit becomes most recent."""
         d = self._items.get(int(i))
         if d is None:
             self.misses += 1
@@ -54,6 +55,9 @@ class DescriptorCache:
             self.evictions += 1
         self._items[i] = d
         self.bytes += d.nbytes
+
+    def __contains__(self, i: int) -> bool:
+        return int(i) in self._items
 
     def __len__(self) -> int:
         return len(self._items)

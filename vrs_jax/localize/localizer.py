@@ -171,13 +171,16 @@ class Localizer:
         m, cfg = self.map, self.cfg
         s = run_stages(m, q, cfg, until="retrieval", jitted=JITTED_STAGES)
         idx = np.asarray(s["idx"])
-        descs = [self.cache.get(int(i)) for i in idx]
+        # hits: cached references used; misses: references rendered (an early exit leaves
+        # the others neither)
+        descs = [self.cache.get(int(i)) if int(i) in self.cache else None for i in idx]
         have = np.array([d is not None for d in descs])
         missing = np.flatnonzero(~have)
         n_rendered = 0
         for c in missing:
             if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have):
                 break
+            self.cache.get(int(idx[c]))  # a miss
             one = {"idx": jnp.asarray([idx[c]], jnp.int32)}
             one.update(JITTED_STAGES["render"](m, q, cfg, one))
             n_rendered += int(one["n_rendered"])
