@@ -55,6 +55,17 @@ def test_training_raises_heldout_psnr(prep):
     assert after >= before + 8.0 and after >= 19.0, (before, after)
 
 
+def test_steps_per_s_counts_the_asynchronously_dispatched_steps(prep):
+    """Steps run asynchronously between host reads; their compute is training time, not
+    the 'aside' time of the reads (which once absorbed it, reporting rates many times too
+    high and so a learning-rate horizon the budget could never reach). Without evaluation
+    or checkpoints, the rate times the loop's time is the steps run."""
+    cfg = dataclasses.replace(CFG, eval_every=10**6, log_every=25)
+    res = T.train(dataclasses.replace(prep, cfg=cfg), None, steps=100, progress=False)
+    loop_s = res.seconds - res.compile_s
+    assert 0.7 * 99 <= res.steps_per_s * loop_s <= 1.05 * 99, (res.steps_per_s, loop_s)
+
+
 def _allclose_trees(a, b, tol=1e-6):
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=tol, atol=tol)

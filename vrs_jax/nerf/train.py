@@ -676,6 +676,10 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                     or past or (eval_fn is not None and s % cfg.eval_every == 0))
             if not read:
                 continue
+            # steps are dispatched asynchronously: wait for the queued ones here, so that
+            # their compute counts as training time and only the read, evaluation and
+            # checkpoint below count as aside
+            jax.block_until_ready(metrics)
             t_aside = time.perf_counter()
             # the only host read: every log_every steps
             m = dist.gather(metrics) if multi else jax.device_get(metrics)
