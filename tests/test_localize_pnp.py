@@ -7,7 +7,7 @@ depths uniform in [0.5, 3] m (indoor, 7Scenes-like), image points uniform over t
 
 Why this geometry: the Cramer-Rao bound of the camera centre from 500 inliers at 0.5-3 m is
 0.27 mm RMS (rotation 0.012 deg), so "under 1 mm / 0.05 deg" is a ~4-sigma claim any
-efficient estimator should meet. With the brief's first suggestion (400 points at 1-5 m, i.e.
+efficient estimator should meet. With a sparser geometry (400 points at 1-5 m, i.e.
 200 inliers) the bound itself is 1.2 mm RMS (0.029 deg): no estimator can meet 1 mm there
 reliably, so that geometry would make the test fail for a correct implementation.
 """
@@ -129,13 +129,34 @@ def test_refinement_never_worsens_the_seed_cost(seed, rot_deg, trans_m, outliers
         np.testing.assert_array_equal(np.asarray(t1), np.float32(t0))
 
 
-def test_refining_the_optimum_again_keeps_it():
-    uv, X, R, t, inl = make_problem(3, n=300)
+def float32_basin(cost: float, n_inliers: int, n_terms: int) -> float:
+    """Radius in radians of the flat region around a float32 optimum of the robust cost.
+
+    LM accepts a step whenever the float32 cost goes down, and near the optimum that test is
+    decided by round-off: a sum of ``n_terms`` float32 terms carries an error of about
+    eps * cost * sqrt(n_terms), and a rotation by d radians raises the cost by about
+    0.5 * n_inliers * F^2 * d^2 (each inlier moves by F * d pixels, weight ~1 below the 1 px
+    Cauchy scale). Steps inside the radius where the two are equal are accepted or rejected
+    by chance, so a second refinement may wander that far without being wrong.
+    """
+    eps = float(np.finfo(np.float32).eps)
+    return float(np.sqrt(2 * eps * np.sqrt(n_terms) * cost / (n_inliers * F ** 2)))
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_refining_the_optimum_again_keeps_it(seed):
+    uv, X, R, t, inl = make_problem(seed, n=300)
     R1, t1, _ = _refine(*f32(R, t, uv, X, inl, K64), cfg=CFG)
     R2, t2, info = _refine(R1, t1, *f32(uv, X, inl, K64), cfg=CFG)
     assert float(info.cost) <= float(info.cost_seed)
     dt, dr = errors(R2, t2, np.asarray(R1, np.float64), np.asarray(t1, np.float64))
-    assert dt < 2e-6 and dr < 1e-4
+    # Measured on two CPUs: 0.3-6.7 um and 1.6e-5 - 1.5e-4 deg for seeds 0-5, against a basin
+    # of ~1.5e-4 deg (2.6e-6 rad). A rotation inside the basin trades against a translation
+    # of d * depth (the pixel motion of the one nearly cancels the other's), depth <= 3 m.
+    # Three basins is still 1/50 of the Cramer-Rao spread (0.02 deg) of this geometry.
+    basin = float32_basin(np_robust_cost(R1, t1, uv, X, inl, K64), int(inl.sum()), len(uv))
+    assert dr < 3 * np.degrees(basin), (dr, np.degrees(basin))
+    assert dt < 3 * basin * 3.0, (dt, basin)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -17,8 +17,8 @@ Pixel convention. Points and intrinsics follow COLMAP (the centre of the top-lef
 differ only in which (u, v) the *pixel array* element [0, 0] sits at, i.e. in how ``cx, cy``
 and the keypoints are expressed. Since both the points and ``K`` given here are in COLMAP's
 convention, they are handed to OpenCV unchanged: shifting the points by -0.5 would require
-shifting ``cx, cy`` by -0.5 too, and the two shifts cancel in the projection. (The +0.5 of the
-common brief applies where OpenCV *keypoint detections* enter the project, in features/.)
+shifting ``cx, cy`` by -0.5 too, and the two shifts cancel in the projection. (A +0.5 shift
+applies where OpenCV *keypoint detections* enter the project, in features/keypoints.py.)
 """
 
 from __future__ import annotations
