@@ -1,7 +1,7 @@
 """Patch fidelity of the NeRF map at its own reference views: map bytes vs rendered patches.
 
-    python -m benchmarks.fidelity --format nerf --root /data/dtu_scan24 \
-        --query-every 5 --steps 3000 --work runs/fid_scan24 --json runs/fid_ipe.json \
+    python -m benchmarks.fidelity --format nerf --root /data/dtu_scan24 \\
+        --query-every 5 --steps 3000 --work runs/fid_scan24 --json runs/fid_ipe.json \\
         [--set encoding=hashgrid --set net_depth=2 ...] [--label NAME]
     python -m benchmarks.fidelity --map runs/map_scan24 --json runs/fid_map.json
 

@@ -1,6 +1,6 @@
 """NeRF benchmark: train each config on a wall-clock budget, then measure it.
 
-    python -m benchmarks.nerf --data /data/lego --format nerf \
+    python -m benchmarks.nerf --data /data/lego --format nerf \\
         --near 2 --far 6 --minutes 10 --config cpu-small --json runs/nerf_lego.json
 
 For each config (default: paper and cpu-small) it reports

@@ -17,25 +17,26 @@ import time
 
 from vrs_jax import fileio, maps
 from vrs_jax.cli.common import (
+    HelpFormatter,
     add_scene_args,
     load_scene_from_args,
+    prog,
     record_run,
     scene_opts,
     start_run,
 )
-from vrs_jax.egm import build
 from vrs_jax.egm.colmap import export_colmap
 from vrs_jax.errors import cli_main
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m experiments.build_egm",
+        prog=prog("experiments.build_egm"),
         description="Triangulate the reference images of a dataset with their known poses "
                     "(SfM first for --format images) and write the explicit geometric map: "
                     "3D points, per image its pose, intrinsics and the keypoints linked to "
                     "3D points, VLAD global descriptors and the real-patch descriptors.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     add_scene_args(p)
     p.add_argument("--out", required=True, help="map folder to write")
     p.add_argument("--config", default="cpu-small", choices=sorted(maps.CONFIGS),
@@ -60,9 +61,6 @@ def main(argv: list[str] | None = None) -> int:
     maps.build_map(scene, out, cfg, progress=not args.quiet, source_options=scene_opts(args),
                    train_nerf=False)
     m = maps.load_map(out, require_ilm=False)
-    stats = maps.read_stats(out)
-    if "egm" in stats:
-        print(build.format_stats(stats["egm"]))
     print(f"EGM written to {out}")
     if args.export_colmap:
         d = export_colmap(m.egm, args.export_colmap, text=not args.binary)

@@ -4,9 +4,32 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 from vrs_jax.errors import VrsError
+
+
+def prog(module: str) -> str:
+    """The program name of usage lines: the console script's own name when run as one
+    (``vrs-jax-localize``), else ``python -m MODULE`` (``experiments.localize``)."""
+    script = Path(sys.argv[0]).name
+    return script if script.startswith("vrs-jax") else f"python -m {module}"
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows ``(default: X)`` only where there is a default worth naming: not for None,
+    False or an empty list, and not where the help text already says what the default is."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or action.default in (None, False, [], argparse.SUPPRESS):
+            return text
+        return super()._get_help_string(action)
+
+
+class RawHelpFormatter(HelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """:class:`HelpFormatter` that keeps the description's line breaks (usage examples)."""
 
 
 def _parse_value(text: str):
@@ -66,9 +89,11 @@ def load_scene_from_args(args: argparse.Namespace, fmt: str | None = None,
     ``--format images`` (a folder of unposed photos) runs pycolmap's incremental SfM first,
     with its work files in ``sfm_dir``; every N-th photo is then held out with --query-every.
     """
-    from vrs_jax.data.readers import load_scene
+    from vrs_jax.data.readers import FORMATS, load_scene
 
     fmt = fmt or args.fmt
+    if fmt not in (*FORMATS, "images"):
+        raise VrsError(f"unknown dataset format {fmt!r} (known: {', '.join(FORMATS)}, images)")
     if fmt == "images":
         from vrs_jax.egm import sfm
 

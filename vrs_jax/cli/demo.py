@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from vrs_jax import fileio, localize, maps
-from vrs_jax.cli.common import record_run, start_run
+from vrs_jax.cli.common import HelpFormatter, prog, record_run, start_run
 from vrs_jax.data import synthetic
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import cli_main
@@ -35,9 +35,9 @@ PAPER_ROWS = (("render", "VRS-NeRF (rendered {P}x{P} patches)"),
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m experiments.demo",
+    p = argparse.ArgumentParser(prog=prog("experiments.demo"),
                                 description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("--out", default="outputs/demo", help="output folder")
     p.add_argument("--quick", action="store_true",
                    help="small scene and tiny configs (minutes; a smoke run)")

@@ -22,7 +22,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from vrs_jax import fileio
-from vrs_jax.cli.common import parse_opts, record_run, start_run
+from vrs_jax.cli.common import parse_opts, prog, record_run, start_run
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results
@@ -118,7 +118,7 @@ def _preview(names: list[str], limit: int = 5) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m experiments.evaluate",
+        prog=prog("experiments.evaluate"),
         description="Median errors and recall of a results file (name qw qx qy qz tx ty tz, "
                     "world-to-camera) against a dataset's query ground truth.")
     p.add_argument("--results", required=True, help="results file to evaluate")

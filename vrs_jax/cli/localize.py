@@ -28,7 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from vrs_jax import fileio, localize, maps
-from vrs_jax.cli.common import add_scene_args, load_scene_from_args, record_run, start_run
+from vrs_jax.cli.common import (
+    HelpFormatter,
+    add_scene_args,
+    load_scene_from_args,
+    prog,
+    record_run,
+    start_run,
+)
 from vrs_jax.data.readers.query_list import query_scene as query_list_scene
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
@@ -39,9 +46,9 @@ from vrs_jax.localize.batch import localize_scene
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m experiments.localize",
+    p = argparse.ArgumentParser(prog=prog("experiments.localize"),
                                 description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("--map", required=True, help="map folder written by experiments.train*")
     add_scene_args(p, required=False)
     p.add_argument("--images", metavar="DIR",

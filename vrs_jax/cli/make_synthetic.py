@@ -20,7 +20,7 @@ import dataclasses
 import re
 import time
 
-from vrs_jax.cli.common import record_run, start_run
+from vrs_jax.cli.common import prog, record_run, start_run
 from vrs_jax.data.synthetic import CONFIGS, generate, get_config, is_generated
 from vrs_jax.errors import cli_main
 
@@ -52,7 +52,7 @@ def _count(minimum: int):
 def build_parser() -> argparse.ArgumentParser:
     d = get_config("default")
     p = argparse.ArgumentParser(
-        prog="python -m experiments.make_synthetic",
+        prog=prog("experiments.make_synthetic"),
         description="Ray-cast the embedded synthetic indoor scene (procedurally textured room "
                     "with boxes) from a reference and a query trajectory, and write it in the "
                     "7Scenes layout (colour PNG, 16-bit millimetre depth PNG, camera-to-world "

@@ -18,23 +18,24 @@ import argparse
 
 from vrs_jax import maps
 from vrs_jax.cli.common import (
+    HelpFormatter,
     add_scene_args,
     load_scene_from_args,
+    prog,
     record_run,
     scene_opts,
     start_run,
 )
 from vrs_jax.errors import cli_main
-from vrs_jax.maps.build import describe
 from vrs_jax.nerf.config import parse_overrides
 
 
 def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
                  description: str | None = None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog=f"python -m experiments.{'train' if fmt is None else 'train_' + fmt}",
+        prog=prog(f"experiments.{'train' if fmt is None else 'train_' + fmt}"),
         description=description or __doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     add_scene_args(p, fmt)
     p.add_argument("--out", required=True, help="map folder to write (created; resumable)")
     p.add_argument("--config", default=default_config, choices=sorted(maps.CONFIGS),
@@ -81,7 +82,6 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
           f"{int(scene.is_query.sum())} query images")
     maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
                    source_options=scene_opts(args))
-    print(f"[3/3] {describe(out)}")
     record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 

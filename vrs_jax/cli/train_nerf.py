@@ -1,6 +1,6 @@
 """Train the implicit map (per-cluster Mip-NeRFs) on any supported dataset, render views.
 
-    python -m experiments.train_nerf --format nerf --root /data/lego \
+    python -m experiments.train_nerf --format nerf --root /data/lego \\
         --query-every 8 --near 2 --far 6 --config cpu-small --minutes 10 --out runs/lego
 
 Writes into --out only:
@@ -25,13 +25,20 @@ from pathlib import Path
 import numpy as np
 
 from vrs_jax import fileio
-from vrs_jax.cli.common import add_scene_args, load_scene_from_args, record_run, start_run
+from vrs_jax.cli.common import (
+    RawHelpFormatter,
+    add_scene_args,
+    load_scene_from_args,
+    prog,
+    record_run,
+    start_run,
+)
 from vrs_jax.errors import VrsError, cli_main
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m experiments.train_nerf", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog=prog("experiments.train_nerf"), description=__doc__,
+                                formatter_class=RawHelpFormatter)
     add_scene_args(p)
     p.add_argument("--out", required=True, help="output folder (created; resumed if present)")
     p.add_argument("--config", default="cpu-small", help="NeRF config: paper, cpu-small, test")

@@ -87,6 +87,7 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
             and "map_bytes" in stats):
         log("[1/3] EGM: already built, skipping")
         log("[2/3] ILM: already trained, skipping")
+        log(f"[3/3] {describe(out)}")
         return out  # a finished map: nothing to write (works in a read-only folder too)
     fileio.check_writable(out)
     if m is None:
@@ -125,6 +126,7 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
         log("[2/3] ILM: already trained, skipping")
     stats["map_bytes"] = map_io.map_bytes(out)
     map_io.save_map(m, out, stats)
+    log(f"[3/3] {describe(out)}")
     return out
 
 

@@ -700,8 +700,10 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
                 log(f"step {s}: train psnr {rec['psnr']:.2f} held-out psnr {held:.2f}")
             history.append(rec)
             bar.update(s - bar.n)
-            bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
-                            val=f"{held:.2f}", refresh=False)
+            shown = {"loss": f"{rec['loss']:.4f}", "psnr": f"{rec['psnr']:.2f}"}
+            if math.isfinite(held):  # held-out views exist and were evaluated
+                shown["val"] = f"{held:.2f}"
+            bar.set_postfix(shown, refresh=False)
             if mngr is not None and s % cfg.checkpoint_every == 0:
                 save_checkpoint(mngr, state, meta)
                 last_good = s
