@@ -17,17 +17,18 @@ def _example() -> str:
 
 
 def test_readme_example_is_short_and_runs(tiny_map, small_synthetic_scene):
-    from vrs_jax.data.readers import load_scene
-
+    """As printed, with the demo's two folders replaced by the test session's scene and map
+    (a small room and the `test` config, which the block reads from the map)."""
     code = _example()
     lines = [x for x in code.splitlines() if x.strip()]
-    assert len(lines) <= 6
-    queries = load_scene("7scenes", small_synthetic_scene).queries()
-    code = code.replace('"maps/room"', repr(str(tiny_map)))
-    code = code.replace('"query.png"', repr(str(queries.image_paths[0])))
-    code = code.replace('"cpu-small"', '"test"')  # the tiny map's config
-    ns = {"K": queries.K[0], "dist": queries.dist[0]}
+    assert len(lines) <= 8
+    for demo_path, here in (('"outputs/demo/map"', tiny_map),
+                            ('"outputs/demo/scene"', small_synthetic_scene)):
+        assert demo_path in code
+        code = code.replace(demo_path, repr(str(here)))
+    ns: dict = {}
     exec(compile(code, str(README), "exec"), ns)
     r = ns["result"]
     assert np.asarray(r.R).shape == (3, 3) and np.all(np.isfinite(np.asarray(r.t)))
     assert bool(r.success) != bool(r.fallback)
+

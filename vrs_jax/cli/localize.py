@@ -2,7 +2,8 @@
 
     python -m experiments.localize --map MAPDIR --out OUTDIR [--mode render|real]
         [--format F --root DIR [--query-every N] | --images DIR --queries LIST]
-        [--patch-size P] [--top-k K] [--full-sampling] [--basename] [--overwrite] [--verbose]
+        [--patch-size P] [--top-k K] [--full-sampling] [--basename] [--report] [--overwrite]
+        [--verbose]
 
 The queries default to the map's own held-out split (its dataset and reader options are
 recorded in the map); --format/--root name another dataset; --images/--queries name a folder
@@ -73,6 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write bare file names in results.txt (Aachen benchmark)")
     p.add_argument("--no-timing", action="store_true",
                    help="run the fused jitted localize (no per-stage times)")
+    p.add_argument("--report", action="store_true",
+                   help="also write OUTDIR/report.html: a self-contained page with the results "
+                        "table and, per query, its matches and its rendered and real patches "
+                        "(runs the stages once more per query)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace results already in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -172,6 +177,12 @@ def run(args, argv: list[str] | None = None) -> dict:
     summary["per_query"] = [per_query(n, r, info["errors"].get(n))
                             for n, r in zip(queries.names, results, strict=True)]
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))
+    if args.report:
+        from vrs_jax.eval.html import write_report
+
+        page = write_report(out / "report.html", m, queries, results, summary, cfg,
+                            info["errors"], progress=not args.quiet)
+        print(f"report: {page}")
     record_run(out, args, cfg, {"total": time.perf_counter() - t_start,
                                 **{k: v for k, v in info["timing_s"].items() if v is not None}},
                argv)

@@ -222,10 +222,12 @@ def guided_pnp(cfg: LocalizeConfig) -> PnPConfig:
 
 
 def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeResult
-                ) -> LocalizeResult:
+                ) -> tuple[LocalizeResult, Array]:
     """One guided pass from ``res``'s pose (a no-op unless it succeeded): candidates are the
     retrieved images' keypoints with 3D points [k * K_max]; returns the refined result when
-    it has at least as many inliers, else ``res``.
+    it has at least as many inliers, else ``res``, and the pass's inliers [Kq] bool (query
+    keypoints whose guided match is an inlier of the refined pose; all False when the pass
+    was not kept).
 
     Render mode renders only what the guided matching can use: each 3D point once (in the
     first retrieved image that sees it) and only where its projection has a query keypoint
@@ -263,18 +265,22 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
         return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
                            n_inliers=pick(pose.n_inliers, res.n_inliers),
                            n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
-                           n_rendered=res.n_rendered + n_new)
+                           n_rendered=res.n_rendered + n_new), pose.inliers & better
 
-    return jax.lax.cond(res.success, run, lambda _: res, None)
+    none = jnp.zeros(q.mask.shape, bool)
+    return jax.lax.cond(res.success, run, lambda _: (res, none), None)
 
 
 def guided(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """``cfg.guided_passes`` guided passes on the refined result (the first pass's inlier
-    mask stays in ``inliers``)."""
+    mask stays in ``inliers``); ``guided_inliers`` [Kq] bool: the query keypoints that are
+    inliers of the last kept guided pass (all False when none was kept)."""
     res = s["result"]
+    kept = jnp.zeros(q.mask.shape, bool)
     for _ in range(cfg.guided_passes):
-        res = guided_pass(m, q, cfg, s, res)
-    return {"result": res}
+        res, inl = guided_pass(m, q, cfg, s, res)
+        kept = jnp.where(jnp.any(inl), inl, kept)
+    return {"result": res, "guided_inliers": kept}
 
 
 Stage = Callable[[Map, Query, LocalizeConfig, State], State]
