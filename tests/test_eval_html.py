@@ -41,10 +41,11 @@ def test_thumbnail_scale_and_points_land_on_their_pixels():
 
 def test_patch_table_places_each_patch_and_leaves_missing_grey():
     a, b = np.zeros((4, 4)), np.ones((4, 4))
-    t = html.patch_table([[a, b, None]], size=8)
-    assert t.shape == (12, 36)
-    assert t[2:10, 2:10].max() == 0 and t[2:10, 14:22].min() == 1
-    np.testing.assert_array_equal(t[2:10, 26:34], 0.5)
+    t = html.patch_table([[a, b, None], [b, a, a]], size=8)  # two pairs: two columns
+    assert t.shape == (36, 24)
+    assert t[2:10, 2:10].max() == 0 and t[14:22, 2:10].min() == 1
+    np.testing.assert_array_equal(t[26:34, 2:10], 0.5)
+    assert t[2:10, 14:22].min() == 1 and t[26:34, 14:22].max() == 0
 
 
 def _chromium() -> str | None:

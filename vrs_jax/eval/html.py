@@ -79,13 +79,14 @@ def draw_points(img: np.ndarray, uv: np.ndarray, color: tuple[int, int, int], sc
 
 
 def patch_table(rows: Sequence[Sequence[np.ndarray | None]], size: int = 64) -> np.ndarray:
-    """Patches [P, P] in [0, 1] as a grid image: one row per pair, columns side by side with a
-    gap; a None cell stays grey. Returns float [rows * (size + 4), cols * (size + 4)]."""
-    n_cols = max(len(r) for r in rows)
+    """Patches [P, P] in [0, 1] as a grid image: one column per pair (its patches stacked top
+    to bottom), with gaps; a None cell stays grey. Returns float
+    [n_kinds * (size + 4), len(rows) * (size + 4)]."""
+    n_kinds = max(len(r) for r in rows)
     cell = size + 4
-    out = np.full((len(rows) * cell, n_cols * cell), 0.5, np.float32)
-    for i, r in enumerate(rows):
-        for j, p in enumerate(r):
+    out = np.full((n_kinds * cell, len(rows) * cell), 0.5, np.float32)
+    for j, r in enumerate(rows):
+        for i, p in enumerate(r):
             if p is None:
                 continue
             big = cv2.resize(np.asarray(p, np.float32), (size, size),
@@ -174,12 +175,13 @@ def _errors(queries: Scene, results: Sequence[LocalizeResult | None]
 CSS = """body{font-family:sans-serif;margin:1.5em;max-width:1400px}
 table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
 td:first-child,th:first-child{text-align:left}.bad{color:#b00}.ok{color:#070}
-section{border-top:1px solid #aaa;margin-top:1.5em}img{margin:4px;vertical-align:top}
-figure{display:inline-block;margin:0 8px}figcaption{font-size:80%;color:#444}"""
+section{border-top:1px solid #aaa;margin-top:1.5em}img{margin:4px}img.view{height:300px}
+figure{display:inline-block;margin:0 8px;vertical-align:top}
+figcaption{font-size:80%;color:#444;max-width:640px}"""
 
 
-def _figure(uri: str, caption: str) -> str:
-    return (f'<figure><img src="{uri}" alt="{html.escape(caption)}">'
+def _figure(uri: str, caption: str, cls: str = "view") -> str:
+    return (f'<figure><img class="{cls}" src="{uri}" alt="{html.escape(caption)}">'
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
@@ -212,7 +214,8 @@ def query_section(name: str, idx: int, queries: Scene, m: Map, r: LocalizeResult
         if views["pairs"]:
             what = "rendered patch" if views["render"] else "(real mode: no rendering)"
             parts.append(_figure(png_uri(patch_table(views["pairs"])),
-                                 f"query patch | {what} | real reference patch"))
+                                 f"patches of up to 8 inliers, top to bottom: query | {what} | "
+                                 "real reference", cls="patches"))
     parts.append("</section>")
     return "\n".join(parts)
 
@@ -239,7 +242,7 @@ def write_report(path: str | Path, m: Map, queries: Scene,
                     f"<td>{int(r.n_matches) if r is not None else 0}</td><td>{err}</td></tr>")
         sections.append(query_section(name, i, queries, m, r, errors.get(name), views,
                                       dt[i], dr[i]))
-    head = (f"<p>map <code>{html.escape(str(m.source.root or ''))}</code> ({m.config.name}, "
+    head = (f"<p>dataset <code>{html.escape(str(m.source.root or ''))}</code> (map config {m.config.name}, "
             f"{m.egm.num_images} reference images); mode <b>{cfg.source}</b>; "
             f"{summary['n_success']}/{len(results)} localized, {summary['n_fallback']} "
             f"fallback, {summary['n_unreadable']} unreadable</p>")
