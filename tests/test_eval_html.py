@@ -97,7 +97,7 @@ def test_localize_report_opens_in_chromium_with_every_image(tiny_map, tmp_path):
 
 
 def test_a_broken_image_is_seen_by_the_check(tmp_path):
+    good = html.png_uri(np.zeros((2, 2), np.uint8))
     (tmp_path / "report.html").write_text(
-        '<html><body><img src="data:image/png;base64,AAAA"><img src="%s"></body></html>'
-        % html.png_uri(np.zeros((2, 2), np.uint8)))
+        f'<html><body><img src="data:image/png;base64,AAAA"><img src="{good}"></body></html>')
     assert browser_image_check(tmp_path) == (2, 1)

@@ -242,7 +242,8 @@ def write_report(path: str | Path, m: Map, queries: Scene,
                     f"<td>{int(r.n_matches) if r is not None else 0}</td><td>{err}</td></tr>")
         sections.append(query_section(name, i, queries, m, r, errors.get(name), views,
                                       dt[i], dr[i]))
-    head = (f"<p>dataset <code>{html.escape(str(m.source.root or ''))}</code> (map config {m.config.name}, "
+    head = (f"<p>dataset <code>{html.escape(str(m.source.root or ''))}</code> (map config "
+            f"{m.config.name}, "
             f"{m.egm.num_images} reference images); mode <b>{cfg.source}</b>; "
             f"{summary['n_success']}/{len(results)} localized, {summary['n_fallback']} "
             f"fallback, {summary['n_unreadable']} unreadable</p>")
