@@ -461,3 +461,25 @@ def test_save_checkpoint_failure_is_one_line(tmp_path):
     with pytest.raises(VrsError, match="not a folder") as e:
         T.checkpoint_manager(blocker, cfg)
     assert e.value.path == str(blocker.absolute())
+
+
+# ----------------------------------------------------------------------------- issue 23: inputs
+
+
+def test_unknown_config_field_suggests_the_close_one():
+    """A misspelt field of any config kind names the field and suggests the closest ones."""
+    from vrs_jax import localize, maps
+    from vrs_jax.nerf.config import get_config, parse_overrides
+
+    with pytest.raises(VrsError, match=r"unknown NeRF config field 'netwidth'; did you mean "
+                                       r"'net_width'"):
+        parse_overrides(["netwidth=64"])
+    with pytest.raises(VrsError, match="did you mean 'net_width'"):
+        get_config("test", netwidth=64)
+    with pytest.raises(VrsError, match="did you mean 'net_width'"):
+        maps.get_config("test", netwidth=64)
+    with pytest.raises(VrsError, match=r"unknown localize config field 'topk'; did you mean "
+                                       r"'top_k'"):
+        localize.get_config("test", topk=3)
+    with pytest.raises(VrsError, match=r"unknown NeRF config field 'zzzz'$"):
+        parse_overrides(["zzzz=1"])  # nothing close: no suggestion
