@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -483,3 +484,24 @@ def test_unknown_config_field_suggests_the_close_one():
         localize.get_config("test", topk=3)
     with pytest.raises(VrsError, match=r"unknown NeRF config field 'zzzz'$"):
         parse_overrides(["zzzz=1"])  # nothing close: no suggestion
+
+
+@pytest.mark.parametrize("version", ["4", 4.0, True, None])
+def test_map_format_version_must_be_an_integer(version, tiny_map, tmp_path):
+    """``"format_version": "4"`` is not read as version 4 (nor reported as 'version 4;
+    this vrs-jax reads version 4')."""
+    from vrs_jax import maps
+
+    m = tmp_path / "map"
+    m.mkdir()
+    meta = fileio.read_json(tiny_map / "map.json")
+    if version is None:
+        del meta["format_version"]
+    else:
+        meta["format_version"] = version
+    (m / "map.json").write_text(json.dumps(meta))
+    want = "lacks 'format_version'" if version is None else \
+        f"format_version must be an integer, got {version!r}"
+    with pytest.raises(VrsError, match=re.escape(want)) as e:
+        maps.load_map(m)
+    assert e.value.path == str(m / "map.json")
