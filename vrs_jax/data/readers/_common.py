@@ -126,15 +126,23 @@ def list_images(folder: Path) -> list[Path]:
                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def text_lines(path: str | Path, what: str = "file") -> list[tuple[int, str]]:
-    """(1-based line number, stripped text) of every non-empty line; CRLF and tabs are fine."""
+def read_text(path: str | Path, what: str = "file") -> str:
+    """The text of a UTF-8 file, a leading byte-order mark dropped (Windows editors write one;
+    it would otherwise stick to the first name); VrsError naming the file when it is missing
+    or unreadable."""
     p = Path(path)
     if not p.is_file():
         raise VrsError(f"{what} not found" if not p.exists() else f"{what} is not a file", p)
     try:
-        text = p.read_text(encoding="utf-8", errors="replace")
+        return p.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as e:
         raise VrsError(f"cannot read {what}: {e.strerror or e}", p) from None
+
+
+def text_lines(path: str | Path, what: str = "file") -> list[tuple[int, str]]:
+    """(1-based line number, stripped text) of every non-empty line of :func:`read_text`;
+    CRLF, tabs and a byte-order mark are fine."""
+    text = read_text(path, what)
     return [(i + 1, s.strip()) for i, s in enumerate(text.splitlines()) if s.strip()]
 
 
