@@ -505,3 +505,40 @@ def test_map_format_version_must_be_an_integer(version, tiny_map, tmp_path):
     with pytest.raises(VrsError, match=re.escape(want)) as e:
         maps.load_map(m)
     assert e.value.path == str(m / "map.json")
+
+
+def test_localize_zero_byte_and_non_image_queries_are_flagged(tiny_map, small_synthetic_scene,
+                                                              tmp_path, capsys):
+    """An empty and a non-image query file (a dataset folder, then a query list) are flagged
+    with their reason in summary.json while the other queries are localized (not: the run
+    aborted with exit 2)."""
+    from vrs_jax.cli import localize as cli
+    from vrs_jax.data.readers import load_scene
+
+    root = tmp_path / "room"
+    shutil.copytree(small_synthetic_scene, root)
+    q = load_scene("7scenes", root).queries()
+    q.image_paths[1].write_bytes(b"")
+    q.image_paths[4].write_text("not an image\n")
+    bad = {q.names[1]: q.image_paths[1], q.names[4]: q.image_paths[4]}
+    listed = tmp_path / "queries.txt"
+    listed.write_text("".join(f"{n} PINHOLE {w} {h} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n"
+                              for n, (w, h), K in zip(q.names, q.sizes, q.K, strict=True)))
+    common = ["--map", str(tiny_map), "--config", "test", "--mode", "real", "--no-timing",
+              "--quiet"]
+    for i, where in enumerate((["--format", "7scenes", "--root", str(root)],
+                               ["--images", str(root), "--queries", str(listed)])):
+        out = tmp_path / f"loc{i}"
+        rc = cli.main(common + ["--out", str(out)] + where)
+        err = capsys.readouterr().err
+        assert rc == 0, err
+        assert "Traceback" not in err
+        rows = {r["name"]: r for r in
+                json.loads((out / "summary.json").read_text())["per_query"]}
+        assert len(rows) == len(q)
+        for name, path in bad.items():
+            assert not rows[name]["success"]
+            assert str(path) in rows[name]["error"] and "unreadable image" in rows[name]["error"]
+        good = [r for n, r in rows.items() if n not in bad]
+        assert all(r["error"] is None for r in good)
+        assert sum(r["success"] for r in good) >= len(good) - 1

@@ -175,11 +175,12 @@ def load(root: str | Path, *, pgt: str | Path | None = None, query_every: int = 
     # a missing pose is an error (read_pose_file); a pose without its image is skipped, said
     C.warn_list("7-Scenes pose files without a frame-XXXXXX.color image, skipped", orphans)
     n = len(names)
-    sizes = C.image_sizes(paths)
     R, t = np.stack(Rs), np.stack(ts)
     is_query = np.asarray(is_query)
     if not has_split:
         is_query = C.query_mask(names, query_every)
+    # an unreadable query image is flagged when it is localized, not here
+    sizes = C.image_sizes(paths, tolerate=is_query)
 
     # Depth images: 7-Scenes' are all 640x480; read the header of the first one per sequence
     # folder (the dataset guarantees a constant size within a sequence).
