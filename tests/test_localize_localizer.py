@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from vrs_jax import localize, maps
-from vrs_jax.data.images import read_gray, read_image
+from vrs_jax.data.images import as_gray as to_gray
+from vrs_jax.data.images import check_intrinsics, read_gray, read_image
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
-from vrs_jax.localize.localizer import Localizer, check_intrinsics, to_gray
+from vrs_jax.localize.localizer import Localizer
 
 
 @pytest.fixture(scope="module")
@@ -51,11 +52,14 @@ def test_localize_image_equals_localize(loc, queries, tiny_map):
 def test_batch_equals_singles_and_flags_bad_image(loc, queries, tmp_path):
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"not a png")
-    images = [queries.image_paths[1], bad, queries.image_paths[2]]
-    Ks = [queries.K[1], queries.K[1], queries.K[2]]
-    dists = [queries.dist[1], None, queries.dist[2]]
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    images = [queries.image_paths[1], bad, queries.image_paths[2], empty]
+    Ks = [queries.K[1], queries.K[1], queries.K[2], queries.K[2]]
+    dists = [queries.dist[1], None, queries.dist[2], None]
     results, errors = loc.localize_batch(images, Ks, dists)
     assert results[1] is None and str(bad) in errors[1]
+    assert results[3] is None and str(empty) in errors[3] and "unreadable" in errors[3]
     assert errors[0] is None and errors[2] is None
     for i, j in ((0, 1), (2, 2)):
         _same(results[i], loc.localize_image(queries.image_paths[j], queries.K[j],

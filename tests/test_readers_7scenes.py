@@ -179,3 +179,21 @@ def test_sample_inverse_depth_is_exact_on_planes_and_refuses_edges():
 def plane_depth_at(K, R, t, uv):
     o, d = g.pixel_rays(K, R, t, uv)
     return (PLANE_D - o @ PLANE_N) / (d @ PLANE_N)
+
+
+def test_pose_file_without_image_is_skipped_with_a_warning(tmp_path):
+    """A missing pose is an error; a pose file with no colour image is skipped, and a warning
+    names it."""
+    from vrs_jax.errors import VrsError
+
+    write_plane_scene(tmp_path)
+    orphan = tmp_path / "seq-01" / "frame-000007.pose.txt"
+    orphan.write_bytes((tmp_path / "seq-01" / "frame-000000.pose.txt").read_bytes())
+    with pytest.warns(UserWarning, match="pose files without") as rec:
+        s = load_scene("7scenes", tmp_path, query_every=2)
+    assert len(s) == 2
+    assert any(str(orphan) in str(w.message) for w in rec)
+    orphan.unlink()
+    (tmp_path / "seq-01" / "frame-000001.pose.txt").unlink()
+    with pytest.raises(VrsError, match="pose file not found"):
+        load_scene("7scenes", tmp_path, query_every=2)

@@ -96,3 +96,23 @@ def test_bad_lines_name_file_and_line(tmp_path, line, problem):
         read_query_list(ql)
     assert str(ei.value).startswith(f"{ql}:2: "), str(ei.value)
     assert problem in str(ei.value), str(ei.value)
+
+
+def test_byte_order_mark_is_not_part_of_the_first_name(tmp_path):
+    """A list saved with a UTF-8 BOM (Windows editors) reads as without one; a missing first
+    image is named without it. Results files (evaluate) too."""
+    from vrs_jax.eval.results import read_results
+
+    img = tmp_path / "images"
+    img.mkdir()
+    cv2.imwrite(str(img / "a.png"), np.zeros((6, 8, 3), np.uint8))
+    ql = tmp_path / "q.txt"
+    ql.write_bytes(b"\xef\xbb\xbfa.png PINHOLE 8 6 10 11 4 3\n")
+    assert query_scene(ql, img).names == ["a.png"]
+    ql.write_bytes(b"\xef\xbb\xbfc.png PINHOLE 8 6 10 11 4 3\n")
+    with pytest.raises(VrsError, match="image of query c.png ") as e:
+        query_scene(ql, img)
+    assert "\ufeff" not in str(e.value)
+    res = tmp_path / "results.txt"
+    res.write_bytes(b"\xef\xbb\xbfa.png 1 0 0 0 0 0 0\n")
+    assert list(read_results(res)) == ["a.png"]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -461,3 +462,174 @@ def test_save_checkpoint_failure_is_one_line(tmp_path):
     with pytest.raises(VrsError, match="not a folder") as e:
         T.checkpoint_manager(blocker, cfg)
     assert e.value.path == str(blocker.absolute())
+
+
+# ----------------------------------------------------------------------------- issue 23: inputs
+
+
+def test_unknown_config_field_suggests_the_close_one():
+    """A misspelt field of any config kind names the field and suggests the closest ones."""
+    from vrs_jax import localize, maps
+    from vrs_jax.nerf.config import get_config, parse_overrides
+
+    with pytest.raises(VrsError, match=r"unknown NeRF config field 'netwidth'; did you mean "
+                                       r"'net_width'"):
+        parse_overrides(["netwidth=64"])
+    with pytest.raises(VrsError, match="did you mean 'net_width'"):
+        get_config("test", netwidth=64)
+    with pytest.raises(VrsError, match="did you mean 'net_width'"):
+        maps.get_config("test", netwidth=64)
+    with pytest.raises(VrsError, match=r"unknown localize config field 'topk'; did you mean "
+                                       r"'top_k'"):
+        localize.get_config("test", topk=3)
+    with pytest.raises(VrsError, match=r"unknown NeRF config field 'zzzz'$"):
+        parse_overrides(["zzzz=1"])  # nothing close: no suggestion
+
+
+@pytest.mark.parametrize("version", ["4", 4.0, True, None])
+def test_map_format_version_must_be_an_integer(version, tiny_map, tmp_path):
+    """``"format_version": "4"`` is not read as version 4 (nor reported as 'version 4;
+    this vrs-jax reads version 4')."""
+    from vrs_jax import maps
+
+    m = tmp_path / "map"
+    m.mkdir()
+    meta = fileio.read_json(tiny_map / "map.json")
+    if version is None:
+        del meta["format_version"]
+    else:
+        meta["format_version"] = version
+    (m / "map.json").write_text(json.dumps(meta))
+    want = "lacks 'format_version'" if version is None else \
+        f"format_version must be an integer, got {version!r}"
+    with pytest.raises(VrsError, match=re.escape(want)) as e:
+        maps.load_map(m)
+    assert e.value.path == str(m / "map.json")
+
+
+def test_localize_zero_byte_and_non_image_queries_are_flagged(tiny_map, small_synthetic_scene,
+                                                              tmp_path, capsys):
+    """An empty and a non-image query file (a dataset folder, then a query list) are flagged
+    with their reason in summary.json while the other queries are localized (not: the run
+    aborted with exit 2)."""
+    from vrs_jax.cli import localize as cli
+    from vrs_jax.data.readers import load_scene
+
+    root = tmp_path / "room"
+    shutil.copytree(small_synthetic_scene, root)
+    q = load_scene("7scenes", root).queries()
+    q.image_paths[1].write_bytes(b"")
+    q.image_paths[4].write_text("not an image\n")
+    bad = {q.names[1]: q.image_paths[1], q.names[4]: q.image_paths[4]}
+    listed = tmp_path / "queries.txt"
+    listed.write_text("".join(f"{n} PINHOLE {w} {h} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n"
+                              for n, (w, h), K in zip(q.names, q.sizes, q.K, strict=True)))
+    common = ["--map", str(tiny_map), "--config", "test", "--mode", "real", "--no-timing",
+              "--quiet"]
+    for i, where in enumerate((["--format", "7scenes", "--root", str(root)],
+                               ["--images", str(root), "--queries", str(listed)])):
+        out = tmp_path / f"loc{i}"
+        rc = cli.main(common + ["--out", str(out)] + where)
+        err = capsys.readouterr().err
+        assert rc == 0, err
+        assert "Traceback" not in err
+        rows = {r["name"]: r for r in
+                json.loads((out / "summary.json").read_text())["per_query"]}
+        assert len(rows) == len(q)
+        for name, path in bad.items():
+            assert not rows[name]["success"]
+            assert str(path) in rows[name]["error"] and "unreadable image" in rows[name]["error"]
+        good = [r for n, r in rows.items() if n not in bad]
+        assert all(r["error"] is None for r in good)
+        assert sum(r["success"] for r in good) >= len(good) - 1
+
+
+@pytest.fixture(scope="module")
+def real_localizer(tiny_map, small_synthetic_scene):
+    """(Localizer in real mode, a query's grey image [120, 160], its K [3, 3])."""
+    from vrs_jax.data.images import read_gray
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.localize import Localizer
+
+    q = load_scene("7scenes", small_synthetic_scene).queries()
+    return Localizer(tiny_map, "test", source="real"), read_gray(q.image_paths[0]), q.K[0]
+
+
+def _bad_inputs(gray, K):
+    """(case, image, K, dist, message regex) of query inputs every entry point refuses."""
+    nan_K, tiny_K, row_K = K.copy(), K.copy(), K.copy()
+    nan_K[0, 0] = np.nan
+    tiny_K[0, 0] = tiny_K[1, 1] = 1e-6
+    row_K[2, 2] = 2.0
+    return [
+        ("float 0-255", gray.astype(np.float64) * 255, K, None, "look like 0-255.*uint8"),
+        ("int64 0-255", np.round(gray * 255).astype(np.int64), K, None, "look like 0-255"),
+        ("ragged list", [[0.0, 0.1], [0.2]], K, None, "ragged nested list"),
+        ("complex", gray.astype(np.complex64), K, None, "dtype complex64"),
+        ("0x0", np.zeros((0, 0), np.float32), K, None, r"image is empty \(0x0"),
+        ("NaN pixel", np.where(gray > 0.5, np.nan, gray), K, None, "non-finite values"),
+        ("transposed", np.ascontiguousarray(gray.T), K, None,
+         r"image is 120x160 but K's principal point is \(80, 60\)"),
+        ("NaN K", gray, nan_K, None, "K has non-finite entries"),
+        ("K 2x3", gray, K[:2], None, r"K must be a \[3, 3\] matrix, got shape \(2, 3\)"),
+        ("fx 1e-6", gray, tiny_K, None, "below 1 pixel"),
+        ("K last row", gray, row_K, None, r"K's last row must be \[0, 0, 1\]"),
+        ("dist NaN", gray, K, [0, np.nan, 0, 0, 0], "dist has non-finite"),
+        ("dist [3]", gray, K, [0.1, 0, 0], r"dist must be .*got shape \(3,\)"),
+    ]
+
+
+def test_every_localize_entry_point_validates_its_inputs(real_localizer):
+    """Images of another dtype or range (a 0-255 float image was taken for [0, 1] and
+    silently gave a fallback), shape, K and dist: one VrsError naming the argument from
+    localize_image, localize_batch (flagged, the others localized), prepare_query and
+    localize; a NaN K is not blamed on its shape, nor a 0x0 image on K's principal point."""
+    from vrs_jax import localize
+
+    loc, gray, K = real_localizer
+    cases = _bad_inputs(gray, K)
+    for case, image, K_, dist, msg in cases:
+        with pytest.raises(VrsError, match=msg) as e:
+            loc.localize_image(image, K_, dist)
+        assert "\n" not in str(e.value), case
+        with pytest.raises(VrsError, match=msg):
+            localize.prepare_query(loc.map, image, K_, dist, loc.cfg)
+    assert "shape" not in _message(loc, gray, cases[7][2])
+    assert "principal point" not in _message(loc, cases[4][1], K)
+    results, errors = loc.localize_batch([gray] + [c[1] for c in cases],
+                                         [K] + [c[2] for c in cases],
+                                         [None] + [c[3] for c in cases])
+    assert errors[0] is None and results[0] is not None
+    for i, (case, *_, msg) in enumerate(cases, 1):
+        assert results[i] is None and re.search(msg, errors[i]), (case, errors[i])
+        assert errors[i].startswith(f"image {i}: "), errors[i]
+    # localize itself: a Query whose K is not a camera, arguments of another type
+    q = localize.prepare_query(loc.map, gray, K, None, loc.cfg)
+    with pytest.raises(VrsError, match="K has non-finite entries"):
+        localize.localize(loc.map, q.replace(K=q.K.at[1, 1].set(np.inf)), loc.cfg)
+    with pytest.raises(VrsError, match="query must be a Query, got ndarray"):
+        localize.localize(loc.map, gray, loc.cfg)
+
+
+def _message(loc, image, K) -> str:
+    with pytest.raises(VrsError) as e:
+        loc.localize_image(image, K)
+    return str(e.value)
+
+
+def test_valid_query_inputs_still_pass(real_localizer):
+    """uint8 RGB, float grey in [0, 1] and nested lists of them, a [4] distortion, a K of a
+    uniformly downscaled image: accepted, the same arrays as before."""
+    from vrs_jax.localize.query import validate
+
+    _, gray, K = real_localizer
+    g8 = np.round(gray * 255).astype(np.uint8)
+    rgb8 = np.repeat(g8[..., None], 3, axis=-1)
+    np.testing.assert_allclose(validate(rgb8, K, None)[0], g8 / 255.0, atol=1e-6)
+    np.testing.assert_array_equal(validate(gray.astype(np.float64).tolist(), K, None)[0], gray)
+    _, K2, d = validate(gray, K.tolist(), [0.1, 0.01, 0, 0])
+    np.testing.assert_array_equal(K2, K)
+    np.testing.assert_array_equal(d, [0.1, 0.01, 0, 0, 0])
+    half = K.copy()
+    half[:2] /= 2
+    validate(gray[::2, ::2], half, np.zeros(5))

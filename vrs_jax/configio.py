@@ -9,16 +9,35 @@ Lists in JSON become tuples (the configs are hashable: they are static jit argum
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
 import types
 import typing
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from vrs_jax.errors import VrsError
 
 _SPECIAL = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def unknown_name(kind: str, name: str, known: Iterable[str]) -> str:
+    """``unknown KIND 'NAME'`` with the closest known names suggested
+    (``difflib.get_close_matches``): the one wording of every unknown field, option or name."""
+    close = difflib.get_close_matches(str(name), [str(k) for k in known], n=3)
+    hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    return f"unknown {kind} {name!r}{hint}"
+
+
+def check_fields(cls: type, keys: Iterable[str], kind: str) -> None:
+    """VrsError for the first of ``keys`` that is not a field of the dataclass ``cls``,
+    naming it and suggesting the closest fields (``kind``: e.g. "NeRF config field")."""
+    fields = [f.name for f in dataclasses.fields(cls)]
+    for key in keys:
+        if key not in fields:
+            raise VrsError(unknown_name(kind, key, fields))
 
 
 def _encode(v: Any) -> Any:

@@ -146,6 +146,18 @@ def read_json(path: str | Path, what: str = "JSON file") -> Any:
         raise VrsError(f"corrupt {what}: {e}", p) from None
 
 
+def format_version(meta: Mapping[str, Any], path: str | Path, what: str = "map") -> int:
+    """``meta["format_version"]`` of a file's header; VrsError naming ``path`` when it is
+    missing or not an integer (``"4"``, ``4.0``, ``true``: an edited or foreign file)."""
+    v = meta.get("format_version")
+    if v is None:
+        raise VrsError(f"{what} metadata lacks 'format_version'", path)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise VrsError(f"{what} format_version must be an integer, got {v!r} "
+                       f"({type(v).__name__})", path)
+    return v
+
+
 def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

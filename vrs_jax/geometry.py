@@ -24,7 +24,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from vrs_jax.errors import VrsError
+
 Array = Any
+
+# Focal lengths below this many pixels are refused: a field of view of nearly 180 degrees for
+# any image, i.e. a K in other units (normalised coordinates, metres) or a typo.
+MIN_FOCAL_PX = 1.0
+# Distortion lengths taken: OpenCV's (k1, k2, p1, p2) and (k1, k2, p1, p2, k3); 4 is padded.
+DIST_LENGTHS = (4, 5)
 
 
 def _xp(*arrays: Array):
@@ -184,6 +192,51 @@ def intrinsics_matrix(fx: Array, fy: Array, cx: Array, cy: Array) -> Array:
     return xp.stack(
         [xp.stack([fx, z, cx], -1), xp.stack([z, fy, cy], -1), xp.stack([z, z, o], -1)], -2
     )
+
+
+def _numbers(x: Any, what: str, name: str) -> np.ndarray:
+    """``x`` as a float64 array, or VrsError naming ``what`` (ragged lists, strings,
+    complex numbers are not numbers here)."""
+    try:
+        a = np.asarray(x)
+    except ValueError:
+        a = None
+    if a is None or a.dtype == object or not (np.issubdtype(a.dtype, np.integer)
+                                              or np.issubdtype(a.dtype, np.floating)):
+        kind = "a ragged nested list" if a is None or a.dtype == object else f"dtype {a.dtype}"
+        raise VrsError(f"{name}: {what} must be real numbers, got {kind}")
+    return a.astype(np.float64)
+
+
+def check_camera(K: Any, dist: Any = None, name: str = "image"
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Validate a query camera: ``K`` [3, 3] (finite, last row [0, 0, 1], focal lengths of at
+    least :data:`MIN_FOCAL_PX`) and ``dist`` (None, or finite with a length in
+    :data:`DIST_LENGTHS`). Returns (K float64 [3, 3], dist float64 [5] or None); VrsError
+    naming ``name`` and the argument otherwise. The image size is checked against K by
+    :func:`vrs_jax.data.images.check_intrinsics`."""
+    K = _numbers(K, "K", name)
+    if K.shape != (3, 3):
+        raise VrsError(f"{name}: K must be a [3, 3] matrix, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise VrsError(f"{name}: K has non-finite entries (NaN or inf): {K.tolist()}")
+    if np.any(K[2] != (0.0, 0.0, 1.0)):
+        raise VrsError(f"{name}: K's last row must be [0, 0, 1], got {K[2].tolist()}")
+    fx, fy = K[0, 0], K[1, 1]
+    if fx <= 0 or fy <= 0:
+        raise VrsError(f"{name}: focal lengths must be positive, got fx={fx:g} fy={fy:g}")
+    if min(fx, fy) < MIN_FOCAL_PX:
+        raise VrsError(f"{name}: focal lengths fx={fx:g} fy={fy:g} are below "
+                       f"{MIN_FOCAL_PX:g} pixel: K must be in pixels")
+    if dist is None:
+        return K, None
+    d = _numbers(dist, "dist", name)
+    if d.ndim != 1 or d.size not in DIST_LENGTHS:
+        raise VrsError(f"{name}: dist must be (k1, k2, p1, p2[, k3]): "
+                       f"{' or '.join(map(str, DIST_LENGTHS))} numbers, got shape {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise VrsError(f"{name}: dist has non-finite entries (NaN or inf): {d.tolist()}")
+    return K, np.pad(d, (0, 5 - d.size))
 
 
 def scale_intrinsics(K: Array, sx: float, sy: float | None = None) -> Array:

@@ -11,13 +11,16 @@ from vrs_jax import fileio
 from vrs_jax.errors import VrsError
 
 
-def same_aspect(from_size: tuple[float, float], to_size: tuple[float, float]) -> bool:
+def same_aspect(from_size: tuple[float, float], to_size: tuple[float, float],
+                slack: float = 0.0) -> bool:
     """Whether ``to_size`` (w, h) is ``from_size`` scaled by one factor, up to the rounding of
-    one axis to whole pixels (what a downscale by N, or images stored at 1/N, gives)."""
+    one axis to whole pixels (what a downscale by N, or images stored at 1/N, gives), plus
+    ``slack`` times that axis (a principal point is only near the image centre)."""
     (w0, h0), (w1, h1) = (float(x) for x in from_size), (float(x) for x in to_size)
     if min(w0, h0, w1, h1) <= 0:
         return False
-    return abs(w1 - w0 * h1 / h0) <= 1.0 + 1e-9 or abs(h1 - h0 * w1 / w0) <= 1.0 + 1e-9
+    return (abs(w1 - w0 * h1 / h0) <= 1.0 + slack * w1 + 1e-9
+            or abs(h1 - h0 * w1 / w0) <= 1.0 + slack * h1 + 1e-9)
 
 
 def check_size(actual: tuple[int, int], declared: tuple[float, float], path: str | Path,
@@ -28,6 +31,80 @@ def check_size(actual: tuple[int, int], declared: tuple[float, float], path: str
         raise VrsError(f"image is {int(actual[0])}x{int(actual[1])} pixels but {what} are for "
                        f"{declared[0]:g}x{declared[1]:g} (another aspect ratio): wrong or "
                        "damaged image file?", path)
+
+
+# The principal point must lie within this fraction of the image size from the image centre
+# (|cx - w/2| <= f * w and |cy - h/2| <= f * h), and the size it implies, (2 cx, 2 cy), must
+# have the image's aspect ratio within this slack (same_aspect). Real cameras keep it within a
+# few percent of the centre; a K meant for another image size (the full-resolution K with a
+# half-size image, a transposed image) puts it at the border, outside, or off the diagonal.
+PRINCIPAL_POINT_TOLERANCE = 0.25
+
+
+def check_intrinsics(width: int, height: int, K: np.ndarray, name: str = "image") -> None:
+    """VrsError naming ``name`` when an image of ``width`` x ``height`` pixels contradicts the
+    principal point of ``K`` [3, 3] (checked first by
+    :func:`vrs_jax.geometry.check_camera`): outside the image, farther than
+    :data:`PRINCIPAL_POINT_TOLERANCE` of the size from its centre, or centring an image of
+    another aspect ratio (:func:`same_aspect`)."""
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    tol = PRINCIPAL_POINT_TOLERANCE
+    if (abs(cx - width / 2) > tol * width or abs(cy - height / 2) > tol * height
+            or not same_aspect((2 * cx, 2 * cy), (width, height), slack=tol)):
+        raise VrsError(f"{name}: image is {width}x{height} but K's principal point is "
+                       f"({cx:g}, {cy:g}), the centre of a {2 * cx:g}x{2 * cy:g} image: K "
+                       "belongs to another image size (or the image is transposed)")
+
+
+# Pixel values of a float image above this are taken for a 0-255 image passed as floats.
+_BYTE_RANGE = 255.0 + 1e-6
+
+
+def _value_range(a: np.ndarray, name: str) -> tuple[float, float]:
+    """(min, max) of an image array; VrsError for non-finite values."""
+    if not np.all(np.isfinite(a)):
+        raise VrsError(f"{name}: image has non-finite values (NaN or inf)")
+    return float(a.min()), float(a.max())
+
+
+def as_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """An image array -> float32 grey [H, W] in [0, 1] (luma as :func:`read_gray`).
+
+    Args:
+      image: [H, W] grey or [H, W, 3] RGB: uint8 in 0..255, uint16 in 0..65535, or float in
+        [0, 1] (a nested list of one of these).
+      name: the image in messages.
+    Raises:
+      VrsError naming ``name`` for another shape or dtype (complex, bool, int64...), an empty
+      image, non-finite values, or floats outside [0, 1] (values up to 255: a 0-255 image
+      passed as floats: pass uint8 or divide by 255).
+    """
+    try:
+        a = np.asarray(image)
+    except ValueError:
+        raise VrsError(f"{name}: image must be an [H, W] or [H, W, 3] array, got a ragged "
+                       "nested list") from None
+    if a.dtype == object or not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)):
+        shape = "a ragged nested list" if a.dtype == object else f"shape {a.shape}"
+        raise VrsError(f"{name}: expected an [H, W] grey or [H, W, 3] RGB array, got {shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise VrsError(f"{name}: image is empty ({a.shape[1]}x{a.shape[0]} pixels)")
+    if a.dtype in (np.uint8, np.uint16):
+        a = a.astype(np.float32) / (255.0 if a.dtype == np.uint8 else 65535.0)
+    elif np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
+        lo, hi = _value_range(a, name)
+        floats = np.issubdtype(a.dtype, np.floating)
+        if not floats or lo < 0 or hi > 1:  # int64 says nothing of the range: refused too
+            if lo >= 0 and hi <= _BYTE_RANGE and (hi > 1 or not floats):
+                raise VrsError(f"{name}: {a.dtype} image with values up to {hi:g}: the values "
+                               "look like 0-255; pass uint8, or floats divided by 255")
+            raise VrsError(f"{name}: {a.dtype} image values must be in [0, 1] (or pass "
+                           f"uint8 0-255), got [{lo:g}, {hi:g}]")
+        a = a.astype(np.float32)
+    else:
+        raise VrsError(f"{name}: image dtype {a.dtype} is not supported: pass uint8 (0-255) "
+                       "or float in [0, 1]")
+    return luma(a) if a.ndim == 3 else a
 
 
 # ITU-R BT.601 luma weights (R, G, B): the one grey conversion of the project, for real

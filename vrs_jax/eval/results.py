@@ -74,7 +74,7 @@ def read_results(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """
     path = require_file(path, "results file")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not a name
     except UnicodeDecodeError as e:
         raise VrsError(f"not a text file ({e.reason})", path) from None
     except OSError as e:

@@ -56,12 +56,13 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
         size = tuple(int(s) for s in queries.sizes[i])
         try:
             gray = read_gray(queries.image_paths[i], size=size)
-        except VrsError as e:
+            q = prepare_query(m, gray, queries.K[i], queries.dist[i], cfg,
+                              str(queries.image_paths[i]))
+        except VrsError as e:  # unreadable, or contradicting its camera: flagged, skipped
             errors[queries.names[i]] = str(e)
             log.warning("skipping query: %s", e)
             results.append(None)
             continue
-        q = prepare_query(m, gray, queries.K[i], queries.dist[i], cfg)
         prep_s.append(time.perf_counter() - t0)
         if timed:
             if not warm:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from vrs_jax import configio
 from vrs_jax.errors import VrsError
 from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.pnp import PnPConfig
@@ -152,7 +153,5 @@ def get_config(name: str, **overrides) -> LocalizeConfig:
     """Named LocalizeConfig with optional field overrides; VrsError for an unknown name."""
     if name not in CONFIGS:
         raise VrsError(f"unknown localize config {name!r}; choose from {sorted(CONFIGS)}")
-    try:
-        return dataclasses.replace(CONFIGS[name], **overrides)
-    except TypeError as e:
-        raise VrsError(f"bad localize setting: {e}") from None
+    configio.check_fields(LocalizeConfig, overrides, "localize config field")
+    return dataclasses.replace(CONFIGS[name], **overrides)

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vrs_jax.data.images import luma, read_gray
+from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import batch as batch_lib
 from vrs_jax.localize.cache import DescriptorCache
@@ -34,45 +34,6 @@ from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map, load_map
-
-# The principal point must lie within this fraction of the image size from the image centre
-# (|cx - w/2| <= f * w and |cy - h/2| <= f * h). Real cameras keep it within a few percent of
-# the centre; a K meant for another image size (e.g. the full-resolution K with a half-size
-# image) puts it at the border or outside, which 0.25 catches.
-PRINCIPAL_POINT_TOLERANCE = 0.25
-
-def to_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """[H, W] or [H, W, 3] array (uint8 in 0..255, or float in [0, 1]) -> float32 grey
-    [H, W] in [0, 1] (luma as :func:`~vrs_jax.data.images.read_gray`)."""
-    a = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] == 3:
-        pass
-    elif a.ndim != 2:
-        raise VrsError(f"{name}: expected an [H, W] grey or [H, W, 3] RGB array, got shape "
-                       f"{a.shape}")
-    if a.dtype == np.uint8:
-        a = a.astype(np.float32) / 255.0
-    elif a.dtype == np.uint16:
-        a = a.astype(np.float32) / 65535.0
-    else:
-        a = a.astype(np.float32)
-    return luma(a) if a.ndim == 3 else a
-
-
-def check_intrinsics(width: int, height: int, K: np.ndarray, name: str = "image") -> None:
-    """VrsError naming ``name`` when the image size contradicts ``K`` [3, 3]: non-positive
-    focal lengths, or a principal point outside the image or farther than
-    :data:`PRINCIPAL_POINT_TOLERANCE` of the size from its centre."""
-    K = np.asarray(K, np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise VrsError(f"{name}: K must be a finite [3, 3] matrix, got shape {K.shape}")
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if fx <= 0 or fy <= 0:
-        raise VrsError(f"{name}: focal lengths must be positive, got fx={fx:g} fy={fy:g}")
-    tol = PRINCIPAL_POINT_TOLERANCE
-    if abs(cx - width / 2) > tol * width or abs(cy - height / 2) > tol * height:
-        raise VrsError(f"{name}: image is {width}x{height} but K's principal point is "
-                       f"({cx:g}, {cy:g}): K belongs to another image size")
 
 
 def _resolve_config(cfg: LocalizeConfig | str | None, source: str | None) -> LocalizeConfig:
@@ -120,23 +81,15 @@ class Localizer:
 
     # ------------------------------------------------------------------ preparation
 
-    def _gray(self, image: str | Path | np.ndarray, name: str) -> np.ndarray:
-        if isinstance(image, (str, Path)):
-            return read_gray(image)  # VrsError naming the path when missing or unreadable
-        return to_gray(image, name)
-
     def prepare(self, image: str | Path | np.ndarray, K: np.ndarray,
                 dist: np.ndarray | None = None, name: str | None = None) -> Query:
-        """One image -> Query (host work). VrsError for an unreadable image or a size
-        that contradicts K."""
+        """One image (file or array) -> Query (host work). VrsError naming the image for an
+        unreadable file, or an image, K or dist that
+        :func:`~vrs_jax.localize.query.validate` refuses."""
         name = name or (str(image) if isinstance(image, (str, Path)) else "image")
-        gray = self._gray(image, name)
-        h, w = gray.shape
-        check_intrinsics(w, h, K, name)
-        d = None if dist is None else np.asarray(dist, np.float64)
-        if d is not None and d.shape != (5,):
-            raise VrsError(f"{name}: dist must be [5] (k1, k2, p1, p2, k3), got {d.shape}")
-        return prepare_query(self.map, gray, np.asarray(K, np.float64), d, self.cfg)
+        if isinstance(image, (str, Path)):
+            image = read_gray(image)  # VrsError naming the path when missing or unreadable
+        return prepare_query(self.map, image, K, dist, self.cfg, name)
 
     # ------------------------------------------------------------------ localization
 

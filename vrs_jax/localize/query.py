@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vrs_jax import geometry
+from vrs_jax.data import images
 from vrs_jax.egm.retrieval import global_descriptor
 from vrs_jax.features.descriptor import DescriptorConfig
 from vrs_jax.features.extract import extract_features
@@ -64,19 +65,47 @@ def query_features(m: Map, cfg: LocalizeConfig) -> tuple[KeypointConfig, PatchCo
     return kp, cfg.patches or f.patches, f.descriptor
 
 
+def validate(image: Any, K: Any, dist: Any, name: str = "image"
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The one check of a query's inputs, for every entry point (``prepare_query``, and
+    through it ``Localizer``, ``localize_batch``, ``localize_scene``).
+
+    Args:
+      image: [H, W] grey or [H, W, 3] RGB array (uint8, uint16, or float in [0, 1]).
+      K: [3, 3] intrinsics of that image size; dist: OpenCV distortion ([4] or [5]) or None.
+      name: the image in messages.
+    Returns:
+      (gray float32 [H, W] in [0, 1], K float64 [3, 3], dist float64 [5] or None).
+    Raises:
+      VrsError naming ``name`` and the argument: the image
+      (:func:`~vrs_jax.data.images.as_gray`), K and dist
+      (:func:`~vrs_jax.geometry.check_camera`), then the image size against K's principal
+      point (:func:`~vrs_jax.data.images.check_intrinsics`), in that order.
+    """
+    gray = images.as_gray(image, name)
+    K, dist = geometry.check_camera(K, dist, name)
+    h, w = gray.shape
+    images.check_intrinsics(w, h, K, name)
+    return gray, K, dist
+
+
 def prepare_query(m: Map, gray: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
-                  cfg: LocalizeConfig) -> Query:
+                  cfg: LocalizeConfig, name: str = "image") -> Query:
     """Keypoints, descriptors and global descriptor of a query image (host function).
 
     Args:
       m: the map (its feature settings and VLAD vocabulary).
-      gray: [H, W] float32 grey image in [0, 1].
+      gray: [H, W] float32 grey image in [0, 1] (or any image :func:`validate` takes).
       K: [3, 3] intrinsics; dist: [5] OpenCV distortion or None.
       cfg: LocalizeConfig (the query keypoint budget: the padded size).
+      name: the image in messages.
     Returns:
       Query with arrays padded to cfg.query_keypoints. An image with no keypoints gives an
       all-False mask (localize then returns a flagged fallback result).
+    Raises:
+      VrsError naming ``name`` for an image, K or dist that :func:`validate` refuses.
     """
+    gray, K, dist = validate(gray, K, dist, name)
     kq = cfg.query_keypoints
     kp_cfg, patch_cfg, desc_cfg = query_features(m, cfg)
     kp, desc = extract_features(gray, kp_cfg, patch_cfg, desc_cfg)

@@ -11,7 +11,10 @@ from __future__ import annotations
 import time
 
 import jax
+import numpy as np
 
+from vrs_jax import geometry
+from vrs_jax.errors import VrsError
 from vrs_jax.localize import stages as st
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query
@@ -50,17 +53,40 @@ def _localize(m: Map, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
     return run_stages(m, q, cfg)["result"]
 
 
-localize = jax.jit(_localize, static_argnames=("cfg",))
-localize.__doc__ = """Localize one query: ``localize(map, query, cfg)`` (jitted; cfg static).
+_localize_jit = jax.jit(_localize, static_argnames=("cfg",))
 
-Args:
-  map: a :class:`vrs_jax.maps.Map` (``maps.load_map``).
-  query: a :class:`~vrs_jax.localize.query.Query` (``prepare_query(map, image, K, dist, cfg)``).
-  cfg: :class:`~vrs_jax.localize.config.LocalizeConfig` (``cfg.source``: "render" or "real").
-Returns:
-  LocalizeResult. Compiled once per (map shapes, cfg); ``jax.vmap(localize, (None, 0, None))``
-  localizes a stacked batch of queries.
-"""
+
+def check_inputs(m: Map, q: Query, cfg: LocalizeConfig) -> None:
+    """VrsError unless ``m`` is a Map, ``cfg`` a LocalizeConfig and ``q`` a Query whose K
+    :func:`~vrs_jax.geometry.check_camera` accepts (when concrete: under jit/vmap the
+    values are traced, and ``prepare_query`` has validated them)."""
+    for arg, value, cls in (("map", m, Map), ("query", q, Query), ("cfg", cfg, LocalizeConfig)):
+        if not isinstance(value, cls):
+            raise VrsError(f"localize: {arg} must be a {cls.__name__}, got "
+                           f"{type(value).__name__}")
+    if not isinstance(q.K, jax.core.Tracer):
+        geometry.check_camera(np.asarray(q.K), None, "localize query")
+
+
+def localize(m: Map, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
+    """Localize one query: ``localize(map, query, cfg)`` (jitted; cfg static).
+
+    Args:
+      m: a :class:`vrs_jax.maps.Map` (``maps.load_map``).
+      q: a :class:`~vrs_jax.localize.query.Query` (``prepare_query(map, image, K, dist, cfg)``).
+      cfg: :class:`~vrs_jax.localize.config.LocalizeConfig` (``cfg.source``: "render" or "real").
+    Returns:
+      LocalizeResult. Compiled once per (map shapes, cfg); ``jax.vmap(localize, (None, 0,
+      None))`` localizes a stacked batch of queries.
+    Raises:
+      VrsError for arguments of another type or a query whose K is not a camera
+      (:func:`check_inputs`).
+    """
+    check_inputs(m, q, cfg)
+    return _localize_jit(m, q, cfg)
+
+
+localize._cache_size = _localize_jit._cache_size  # compilations so far (tests)
 
 # Stages that render: a batch runs them one query after the other (lax.map), because under
 # vmap the renderer's "skip chunks past the last valid keypoint" branch becomes a select that

@@ -170,7 +170,7 @@ def read_meta(folder: str | Path) -> dict[str, Any]:
     meta = fileio.read_json(p, "map metadata")
     if not isinstance(meta, dict) or meta.get("kind") != KIND:
         raise VrsError("not a vrs-jax map", p)
-    v = meta.get("format_version")
+    v = fileio.format_version(meta, p)
     if v != FORMAT_VERSION:
         raise VrsError(f"map format version {v}; this vrs-jax reads version {FORMAT_VERSION}: "
                        "rebuild the map", p)

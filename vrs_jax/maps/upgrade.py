@@ -39,8 +39,9 @@ def load_format2(folder: str | Path) -> tuple[map_io.Map, dict]:
     meta = fileio.read_json(p, "map metadata")
     if not isinstance(meta, dict) or meta.get("kind") != map_io.KIND:
         raise VrsError("not a vrs-jax map", p)
-    if meta.get("format_version") != OLD_VERSION:
-        raise VrsError(f"map format version {meta.get('format_version')}; this upgrades "
+    v = fileio.format_version(meta, p)
+    if v != OLD_VERSION:
+        raise VrsError(f"map format version {v}; this upgrades "
                        f"version {OLD_VERSION}", p)
     files = meta.get("files", {})
     for name in (map_io.EGM_FILE, map_io.ILM_FILE):

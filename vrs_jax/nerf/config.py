@@ -213,10 +213,7 @@ def get_config(name: str, **overrides: Any) -> NerfConfig:
         raise VrsError(f"unknown NeRF config {name!r}; choose from {', '.join(CONFIGS)}")
     cfg = CONFIGS[name]
     if overrides:
-        names = {f.name for f in dataclasses.fields(NerfConfig)}
-        bad = sorted(set(overrides) - names)
-        if bad:
-            raise VrsError(f"unknown NeRF config fields: {', '.join(bad)}")
+        configio.check_fields(NerfConfig, sorted(overrides), "NeRF config field")
         cfg = dataclasses.replace(cfg, **overrides)
     return cfg
 
@@ -224,15 +221,13 @@ def get_config(name: str, **overrides: Any) -> NerfConfig:
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     """CLI ``--set key=value`` pairs -> typed overrides (types from NerfConfig's fields)."""
     out: dict[str, Any] = {}
-    fields = {f.name: f for f in dataclasses.fields(NerfConfig)}
     defaults = NerfConfig()
     for item in items or []:
         if "=" not in item:
             raise VrsError(f"--set expects key=value, got {item!r}")
         key, val = item.split("=", 1)
         key = key.strip().replace("-", "_")
-        if key not in fields:
-            raise VrsError(f"unknown NeRF config field {key!r}")
+        configio.check_fields(NerfConfig, [key], "NeRF config field")
         cur = getattr(defaults, key)
         try:
             if isinstance(cur, bool):

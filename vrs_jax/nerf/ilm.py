@@ -141,10 +141,11 @@ def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
         raise VrsError("corrupt ILM map header", p) from None
     if meta.get("format") != "vrs_jax.ilm":
         raise VrsError("not an ILM map", p)
-    if upgrade and meta.get("format_version") in OLD_VERSIONS:
-        meta["config"] = upgrade_config(meta["format_version"], meta.get("config") or {})
-    elif meta.get("format_version") != FORMAT_VERSION:
-        raise VrsError(f"ILM map format version {meta.get('format_version')} is not supported "
+    v = fileio.format_version(meta, p, "ILM map")
+    if upgrade and v in OLD_VERSIONS:
+        meta["config"] = upgrade_config(v, meta.get("config") or {})
+    elif v != FORMAT_VERSION:
+        raise VrsError(f"ILM map format version {v} is not supported "
                        f"(expected {FORMAT_VERSION}); retrain the map", p)
     cfg = NerfConfig.from_dict(meta["config"], p)
     try:

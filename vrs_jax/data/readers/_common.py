@@ -103,9 +103,36 @@ def image_size(path: str | Path) -> tuple[int, int]:
     return size
 
 
-def image_sizes(paths: Sequence[str | Path]) -> np.ndarray:
-    """[N, 2] int (width, height) of image files (header reads; see :func:`image_size`)."""
-    return np.asarray([image_size(p) for p in paths], dtype=np.int64).reshape(-1, 2)
+def image_sizes(paths: Sequence[str | Path], tolerate: Sequence[bool] | None = None,
+                declared: Sequence[Sequence[int]] | None = None) -> np.ndarray:
+    """[N, 2] int (width, height) of image files (header reads; see :func:`image_size`).
+
+    Args:
+      paths: N image files.
+      tolerate: [N] bool, the images (queries) whose unreadable file is not an error here: it
+        is flagged when the query is localized (reading it raises the VrsError that
+        ``localize_scene`` records) while the other queries are localized. Such an image gets
+        its ``declared`` size, else the size of the first readable image.
+      declared: [N, 2] sizes the dataset gives for the images (e.g. a query list's).
+    Raises:
+      VrsError naming the first unreadable image that is not tolerated (or every image
+      unreadable and no declared size).
+    """
+    sizes: list[tuple[int, int] | None] = []
+    first_error: VrsError | None = None
+    for i, p in enumerate(paths):
+        try:
+            sizes.append(image_size(p))
+        except VrsError as e:
+            if tolerate is None or not tolerate[i] or not Path(p).is_file():
+                raise
+            sizes.append(None if declared is None else tuple(int(x) for x in declared[i]))
+            first_error = first_error or e
+    known = [s for s in sizes if s is not None]
+    if len(known) < len(sizes) and not known:
+        raise first_error
+    sizes = [known[0] if s is None else s for s in sizes]
+    return np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
 
 
 def find_image(stem: Path) -> Path | None:
@@ -126,15 +153,23 @@ def list_images(folder: Path) -> list[Path]:
                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def text_lines(path: str | Path, what: str = "file") -> list[tuple[int, str]]:
-    """(1-based line number, stripped text) of every non-empty line; CRLF and tabs are fine."""
+def read_text(path: str | Path, what: str = "file") -> str:
+    """The text of a UTF-8 file, a leading byte-order mark dropped (Windows editors write one;
+    it would otherwise stick to the first name); VrsError naming the file when it is missing
+    or unreadable."""
     p = Path(path)
     if not p.is_file():
         raise VrsError(f"{what} not found" if not p.exists() else f"{what} is not a file", p)
     try:
-        text = p.read_text(encoding="utf-8", errors="replace")
+        return p.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as e:
         raise VrsError(f"cannot read {what}: {e.strerror or e}", p) from None
+
+
+def text_lines(path: str | Path, what: str = "file") -> list[tuple[int, str]]:
+    """(1-based line number, stripped text) of every non-empty line of :func:`read_text`;
+    CRLF, tabs and a byte-order mark are fine."""
+    text = read_text(path, what)
     return [(i + 1, s.strip()) for i, s in enumerate(text.splitlines()) if s.strip()]
 
 

@@ -83,10 +83,7 @@ def _count(lines, pos, path, what):
 def read_nvm(path: str | Path, read_points: bool = True) -> NvmModel:
     """Parse an NVM_V3 file (first model only). Raises VrsError naming file and line."""
     path = Path(path)
-    if not path.is_file():
-        raise VrsError("NVM model not found" if not path.exists() else "NVM model is not a file",
-                       path)
-    raw = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    raw = C.read_text(path, "NVM model").splitlines()
     lines = [(i + 1, s.strip()) for i, s in enumerate(raw)]
     if not lines or not lines[0][1].startswith("NVM_V3"):
         raise VrsError("not an NVM_V3 file (first line must start with 'NVM_V3')", path, 1)

@@ -92,7 +92,8 @@ def query_scene(list_path: str | Path, images_dir: str | Path) -> Scene:
     Raises:
       VrsError for a malformed list (see :func:`read_query_list`), an empty list, a listed
       image missing under ``images_dir`` (naming the image), or an image whose size differs
-      from the list's ``width height`` (naming the list line).
+      from the list's ``width height`` (naming the list line). An image that exists but
+      cannot be read (empty, not an image) is not an error here: localizing it flags it.
     """
     list_path = Path(list_path)
     img_dir = require_dir(images_dir, "images folder")
@@ -104,7 +105,9 @@ def query_scene(list_path: str | Path, images_dir: str | Path) -> Scene:
         if not p.is_file():
             raise VrsError(f"image of query {e.name} (line {e.line} of {list_path}) not found",
                            p)
-    sizes = C.image_sizes(paths)
+    # an unreadable query image keeps the list's size; localizing it flags it
+    sizes = C.image_sizes(paths, tolerate=[True] * len(paths),
+                          declared=[(e.width, e.height) for e in entries])
     for e, (w, h) in zip(entries, sizes, strict=True):
         if (w, h) != (e.width, e.height):
             raise VrsError(f"image {e.name} is {w}x{h} but the list gives {e.width}x{e.height}",

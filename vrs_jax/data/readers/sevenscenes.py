@@ -33,6 +33,7 @@ RGB_F, DEPTH_F, CX, CY, W0, H0 = 525.0, 585.0, 320.0, 240.0, 640, 480
 DEPTH_SCALE = 0.001  # metres per unit of the depth PNGs (millimetres)
 
 _FRAME = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
+_POSE = re.compile(r"^frame-(\d+)\.pose\.txt$", re.IGNORECASE)
 _SEQ = re.compile(r"^seq-?(\d+)$", re.IGNORECASE)
 _SPLIT = re.compile(r"^sequence-?(\d+)$", re.IGNORECASE)
 
@@ -106,6 +107,13 @@ def read_pgt(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, float, int]]
     return out
 
 
+def orphan_poses(folder: Path, frames: set[str]) -> list[str]:
+    """The ``frame-XXXXXX.pose.txt`` files of a sequence folder whose frame number is not in
+    ``frames`` (no colour image), as paths, sorted."""
+    return sorted(str(p) for p in folder.iterdir()
+                  if (m := _POSE.match(p.name)) and m.group(1) not in frames)
+
+
 def _strip_ext(name: str) -> str:
     """``seq-01/frame-000000.color.png`` -> ``seq-01/frame-000000`` (matching pgt names)."""
     return re.sub(r"\.color\.(png|jpg|jpeg)$", "", name, flags=re.IGNORECASE)
@@ -147,11 +155,13 @@ def load(root: str | Path, *, pgt: str | Path | None = None, query_every: int = 
         raise VrsError("no seq-XX folders found", root)
 
     names, paths, depth_paths, Rs, ts, is_query = [], [], [], [], [], []
+    orphans: list[str] = []
     for seq, query in seqs:
         frames = sorted((m.group(1), p) for p in (root / seq).iterdir()
                         if (m := _FRAME.match(p.name)) and p.is_file())
         if not frames:
             raise VrsError("no frame-XXXXXX.color.png/.jpg images", root / seq)
+        orphans += orphan_poses(root / seq, {idx for idx, _ in frames})
         for idx, img in frames:
             pose_f = img.with_name(f"frame-{idx}.pose.txt")
             R, t = read_pose_file(pose_f)
@@ -162,12 +172,15 @@ def load(root: str | Path, *, pgt: str | Path | None = None, query_every: int = 
             Rs.append(R)
             ts.append(t)
             is_query.append(query)
+    # a missing pose is an error (read_pose_file); a pose without its image is skipped, said
+    C.warn_list("7-Scenes pose files without a frame-XXXXXX.color image, skipped", orphans)
     n = len(names)
-    sizes = C.image_sizes(paths)
     R, t = np.stack(Rs), np.stack(ts)
     is_query = np.asarray(is_query)
     if not has_split:
         is_query = C.query_mask(names, query_every)
+    # an unreadable query image is flagged when it is localized, not here
+    sizes = C.image_sizes(paths, tolerate=is_query)
 
     # Depth images: 7-Scenes' are all 640x480; read the header of the first one per sequence
     # folder (the dataset guarantees a constant size within a sequence).
