@@ -461,3 +461,117 @@ def test_save_checkpoint_failure_is_one_line(tmp_path):
     with pytest.raises(VrsError, match="not a folder") as e:
         T.checkpoint_manager(blocker, cfg)
     assert e.value.path == str(blocker.absolute())
+
+
+# ----------------------------------------------------------------------------- issue 23
+
+
+def test_evaluate_json_never_overwrites(tmp_path, capsys, small_synthetic_scene):
+    """``--json`` pointed at an existing file (here the results file itself) is refused with
+    one line unless --overwrite."""
+    from vrs_jax.cli import evaluate
+
+    res = tmp_path / "results.txt"
+    res.write_text("seq-02/frame-000000.color.png 1 0 0 0 0 0 0\n")
+    base = ["--results", str(res), "--format", "7scenes", "--root", str(small_synthetic_scene)]
+    before = snapshot(tmp_path)
+    line = assert_one_error_line(evaluate.main([*base, "--json", str(res)]),
+                                 capsys.readouterr().err, res)
+    assert "--overwrite" in line and snapshot(tmp_path) == before
+    other = tmp_path / "eval.json"
+    other.write_text("{}\n")
+    assert evaluate.main([*base, "--json", str(other), "--overwrite"]) == 0
+    assert "median" in json.dumps(json.loads(other.read_text()))
+
+
+def test_output_folder_lock(tmp_path):
+    """The lock is exclusive; a lock of a dead process is taken over with a warning."""
+    out = tmp_path / "run"
+    with fileio.folder_lock(out) as d:
+        assert d == out and fileio.lock_path(out).is_file()
+        with pytest.raises(VrsError, match=f"in use by process {os.getpid()}") as e:
+            with fileio.folder_lock(out):
+                pass
+        assert e.value.path == str(out)
+    assert not fileio.lock_path(out).exists()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    fileio.lock_path(out).write_text(f"{dead.pid} {os.uname().nodename}\n")
+    warned = []
+    with fileio.folder_lock(out, warn=warned.append):
+        assert fileio.lock_path(out).read_text().split()[0] == str(os.getpid())
+    assert len(warned) == 1 and str(dead.pid) in warned[0]
+
+
+@pytest.mark.parametrize("command", ["localize", "train"])
+def test_second_run_into_a_locked_folder_is_refused(command, tmp_path, capsys, tiny_map,
+                                                    small_synthetic_scene):
+    from vrs_jax.cli import localize, train
+
+    out = tmp_path / "out"
+    owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        fileio.lock_path(out).write_text(f"{owner.pid} {os.uname().nodename}\n")
+        args = {"localize": (localize.main, ["--map", str(tiny_map), "--out", str(out),
+                                             "--config", "test", "--quiet"]),
+                "train": (train.main, ["--format", "7scenes", "--root",
+                                       str(small_synthetic_scene), "--out", str(out),
+                                       "--config", "test", "--quiet"])}
+        main, argv = args[command]
+        line = assert_one_error_line(main(argv), capsys.readouterr().err, out)
+        assert f"process {owner.pid}" in line
+        assert not out.exists()
+    finally:
+        owner.kill()
+        owner.wait()
+
+
+def test_localize_run_folder_is_a_transaction(tiny_map, tmp_path, capsys, monkeypatch):
+    """A run that fails while writing (a full disk at summary.json) leaves the earlier run's
+    files as they were (with --overwrite too) and no --out at all when there was none; a
+    complete --overwrite run replaces the folder as a whole."""
+    from vrs_jax.cli import localize
+
+    out = tmp_path / "loc"
+    args = ["--map", str(tiny_map), "--out", str(out), "--config", "test", "--mode", "real",
+            "--no-timing", "--quiet"]
+    real_write_json = fileio.write_json
+
+    def full_disk(path, obj):
+        if Path(path).name == "summary.json":
+            raise VrsError("cannot write: no space left on the device", path)
+        return real_write_json(path, obj)
+
+    monkeypatch.setattr(fileio, "write_json", full_disk)
+    assert_one_error_line(localize.main(args), capsys.readouterr().err, out / "summary.json")
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(fileio, "write_json", real_write_json)
+    assert localize.main(args) == 0
+    (out / "note.txt").write_text("from the earlier run\n")
+    before = snapshot(out)
+    monkeypatch.setattr(fileio, "write_json", full_disk)
+    assert_one_error_line(localize.main([*args, "--overwrite"]), capsys.readouterr().err,
+                          out / "summary.json")
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loc"]
+    monkeypatch.setattr(fileio, "write_json", real_write_json)
+    assert localize.main([*args, "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["results.txt", "run.json", "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loc"]
+
+
+def test_staged_folder_recovers_a_swap_cut_by_a_kill(tmp_path):
+    """A kill between the swap's two renames leaves FOLDER.old-PID and no FOLDER: the next
+    staged write puts the old folder back before it starts (and drops the dead staging)."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    d = tmp_path / "map"
+    old = tmp_path / f"map.old-{dead.pid}"
+    old.mkdir()
+    (old / "a.txt").write_text("old\n")
+    (tmp_path / f"map.tmp-{dead.pid}").mkdir()
+    with fileio.staged_folder(d, carry=["a.txt"]) as tmp:
+        assert (tmp / "a.txt").read_text() == "old\n"
+        fileio.write_text(tmp / "b.txt", "new\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map"]
+    assert sorted(p.name for p in d.iterdir()) == ["a.txt", "b.txt"]

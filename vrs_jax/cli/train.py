@@ -75,14 +75,15 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
     t0 = time.perf_counter()
     cfg = map_config(args)
     out = Path(args.out)
-    fileio.check_writable(out)  # before any work starts
-    scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
-    print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} reference and "
-          f"{int(scene.is_query.sum())} query images")
-    maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
-                   source_options=scene_opts(args))
-    print(f"[3/3] {describe(out)}")
-    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
+    with fileio.folder_lock(out):  # one run per map folder
+        fileio.check_writable(out)  # before any work starts
+        scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
+        print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
+              f"reference and {int(scene.is_query.sum())} query images")
+        maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
+                       source_options=scene_opts(args))
+        print(f"[3/3] {describe(out)}")
+        record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 
