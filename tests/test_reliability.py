@@ -575,3 +575,34 @@ def test_staged_folder_recovers_a_swap_cut_by_a_kill(tmp_path):
         fileio.write_text(tmp / "b.txt", "new\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map"]
     assert sorted(p.name for p in d.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_map_records_its_dataset_and_refuses_another(tiny_map, small_synthetic_scene,
+                                                     tmp_path, capsys):
+    """map.json records the dataset (resolved root, format, split, fingerprint of the
+    reference names, sizes and poses); training into it from another dataset is one line,
+    the same dataset (here copied elsewhere) resumes as before."""
+    from vrs_jax.cli import train
+
+    meta = fileio.read_json(tiny_map / "map.json")
+    prov = meta["provenance"]
+    assert prov["root"] == str(Path(small_synthetic_scene).resolve())
+    assert prov["format"] == "7scenes" and len(prov["fingerprint"]) == 64
+    assert prov["split"]["n_reference"] == len(meta["names"])
+    m = tmp_path / "map"
+    shutil.copytree(tiny_map, m)
+    same, other = tmp_path / "same", tmp_path / "other"
+    shutil.copytree(small_synthetic_scene, same)
+    shutil.copytree(small_synthetic_scene, other)
+    pose = other / "seq-01" / "frame-000003.pose.txt"
+    rows = np.loadtxt(pose)
+    rows[0, 3] += 0.01  # one reference pose moved by a centimetre
+    np.savetxt(pose, rows)
+    before = snapshot(m)
+    args = ["--format", "7scenes", "--out", str(m), "--config", "test", "--quiet", "--root"]
+    line = assert_one_error_line(train.main([*args, str(other)]), capsys.readouterr().err, m)
+    assert f"{m} was built from {prov['root']} (fingerprint {prov['fingerprint'][:12]}" in line
+    assert f"not {other.resolve()}" in line
+    assert snapshot(m) == before
+    assert train.main([*args, str(same)]) == 0
+    assert "already trained" in capsys.readouterr().err
