@@ -606,3 +606,51 @@ def test_map_records_its_dataset_and_refuses_another(tiny_map, small_synthetic_s
     assert snapshot(m) == before
     assert train.main([*args, str(same)]) == 0
     assert "already trained" in capsys.readouterr().err
+
+
+def test_steps_below_one_are_refused_at_parsing(capsys, tmp_path):
+    from vrs_jax.cli import train, train_nerf
+
+    for main in (train.main, train_nerf.main):
+        for steps in ("0", "-5"):
+            with pytest.raises(SystemExit) as e:
+                main(["--format", "nerf", "--root", str(tmp_path), "--out",
+                      str(tmp_path / "o"), "--steps", steps])
+            assert e.value.code == 2
+            err = capsys.readouterr().err
+            assert f"--steps: invalid count {steps}: must be >= 1" in err
+            assert "Traceback" not in err and not (tmp_path / "o").exists()
+
+
+def test_psnr_collapse_stops_training(small_synthetic_scene, tmp_path):
+    """lr 1e4 collapses the training PSNR (12.9 -> 3.9 dB on the room): stopped at the first
+    host read, before any checkpoint of the collapsed state is saved."""
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.nerf import train as T
+    from vrs_jax.nerf.config import get_config
+
+    cfg = get_config("test", lr_init=1e4, lr_final=1e4, log_every=10, checkpoint_every=10,
+                     eval_every=1000)
+    prep = T.prepare(load_scene("7scenes", small_synthetic_scene), cfg)
+    with pytest.raises(T.TrainingDiverged, match=r"diverged by step 10 \(cluster 0: training "
+                                                 r"PSNR collapsed to .*no checkpoint"):
+        T.train(prep, tmp_path / "run", steps=40, progress=False)
+    assert not list((tmp_path / "run" / "checkpoints").glob("[0-9]*"))
+
+
+def test_load_map_refuses_an_untrained_or_non_finite_nerf(tiny_map, tmp_path):
+    import jax
+
+    from vrs_jax import maps
+
+    m = maps.load_map(tiny_map)
+    stats = maps.read_stats(tiny_map)
+    never = maps.save_map(m, tmp_path / "never", {**stats, "ilm": {"steps": 0}})
+    with pytest.raises(VrsError, match="never trained") as e:
+        maps.load_map(never)
+    assert e.value.path == str(never / "ilm.npz")
+    params = jax.tree.map(lambda x: x.at[(0,) * x.ndim].set(np.nan),
+                          m.ilm.fields.params)
+    nan = m.replace(ilm=m.ilm.replace(fields=m.ilm.fields.replace(params=params)))
+    with pytest.raises(VrsError, match="non-finite"):
+        maps.load_map(maps.save_map(nan, tmp_path / "nan", stats))

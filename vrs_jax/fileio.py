@@ -228,13 +228,39 @@ def _lock_owner(lock: Path) -> tuple[int, str]:
 
 
 def _take_lock(lock: Path) -> bool:
-    """Create ``lock`` holding ``PID HOST`` atomically (O_CREAT|O_EXCL); False if it exists."""
+    """Create ``lock`` holding ``PID HOST`` atomically (O_CREAT|O_EXCL); False if it exists.
+    OSError (after removing it) when the pid cannot be written (a full disk)."""
     try:
         fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, _MODE)
     except FileExistsError:
         return False
-    with os.fdopen(fd, "w") as f:
-        f.write(f"{os.getpid()} {os.uname().nodename}\n")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()} {os.uname().nodename}\n")
+    except OSError:
+        lock.unlink(missing_ok=True)
+        raise
+    return True
+
+
+def _acquire(d: Path, lock: Path, warn: Callable[[str], None]) -> bool:
+    """Take the lock of ``d`` (a dead owner's is taken over with a warning); False when the
+    disk is too full to record it (the run goes on unlocked: it cannot write either)."""
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        while not _take_lock(lock):
+            pid, host = _lock_owner(lock)
+            if host == os.uname().nodename and pid > 0 and not pid_alive(pid):
+                warn(f"warning: {d}: taking over the lock of process {pid}, which is gone")
+                lock.unlink(missing_ok=True)
+                continue
+            raise VrsError(f"in use by process {pid} on {host or 'another host'} (its lock "
+                           f"is {lock}; remove it if that process is gone)", d)
+    except OSError as e:
+        if e.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT) and lock.parent.is_dir():
+            warn(f"warning: {d}: cannot lock the folder: {_reason(e)}")
+            return False
+        raise VrsError(f"cannot write here: {_reason(e)}", d) from None
     return True
 
 
@@ -249,23 +275,11 @@ def folder_lock(folder: str | Path, warn: Callable[[str], None] | None = None
     """
     d = Path(folder)
     lock = lock_path(d)
-    warn = warn or (lambda s: print(s, file=sys.stderr))
-    try:
-        lock.parent.mkdir(parents=True, exist_ok=True)
-        while not _take_lock(lock):
-            pid, host = _lock_owner(lock)
-            if host == os.uname().nodename and pid > 0 and not pid_alive(pid):
-                warn(f"warning: {d}: taking over the lock of process {pid}, which is gone")
-                lock.unlink(missing_ok=True)
-                continue
-            raise VrsError(f"in use by process {pid} on {host or 'another host'} (its lock "
-                           f"is {lock}; remove it if that process is gone)", d)
-    except OSError as e:
-        raise VrsError(f"cannot write here: {_reason(e)}", d) from None
+    held = _acquire(d, lock, warn or (lambda s: print(s, file=sys.stderr)))
     try:
         yield d
     finally:
-        if _lock_owner(lock)[0] == os.getpid():
+        if held and _lock_owner(lock)[0] == os.getpid():
             lock.unlink(missing_ok=True)
 
 

@@ -19,6 +19,7 @@ import argparse
 from vrs_jax import maps
 from vrs_jax.cli.common import (
     add_scene_args,
+    count_at_least,
     load_scene_from_args,
     record_run,
     scene_opts,
@@ -39,12 +40,12 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
     p.add_argument("--out", required=True, help="map folder to write (created; resumable)")
     p.add_argument("--config", default=default_config, choices=sorted(maps.CONFIGS),
                    help="named map configuration (EGM and NeRF settings, stored by value)")
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--steps", type=count_at_least(1), default=None,
                    help="NeRF training steps, also the lr schedule's length (default: the "
                         "config's; a larger value continues a finished map)")
     p.add_argument("--minutes", type=float, default=None,
                    help="wall-clock cap on this run's NeRF training (re-run to continue)")
-    p.add_argument("--clusters", type=int, default=None,
+    p.add_argument("--clusters", type=count_at_least(1), default=None,
                    help="number of NeRF clusters (default: the config's)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "

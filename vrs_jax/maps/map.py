@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import flax.struct
+import jax
 import numpy as np
 
 from vrs_jax import configio, fileio
@@ -258,9 +259,22 @@ def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = T
         if ilm.config != cfg.nerf:
             raise VrsError("the NeRF was trained with another config than map.json records",
                            d / ILM_FILE)
+        _check_trained(ilm, meta, d / ILM_FILE)
     elif require_ilm:
         raise VrsError("the map has no trained NeRF yet: finish its training run", d)
     return Map(egm=egm, ilm=ilm, config=cfg, source=source)
+
+
+def _check_trained(ilm: ILM, meta: dict, p: Path) -> None:
+    """VrsError unless the NeRF trained (``stats.ilm.steps`` > 0 where recorded) to finite
+    parameters."""
+    steps = (meta.get("stats") or {}).get("ilm", {}).get("steps")
+    if steps is not None and steps <= 0:
+        raise VrsError("the NeRF was never trained (0 steps): rebuild the map with --steps "
+                       ">= 1", p)
+    if not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(ilm.fields.params)):
+        raise VrsError("the NeRF parameters hold non-finite values (a diverged training "
+                       "run): rebuild the map with a lower lr_init", p)
 
 
 def read_stats(folder: str | Path) -> dict[str, Any]:
