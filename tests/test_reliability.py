@@ -654,3 +654,33 @@ def test_load_map_refuses_an_untrained_or_non_finite_nerf(tiny_map, tmp_path):
     nan = m.replace(ilm=m.ilm.replace(fields=m.ilm.fields.replace(params=params)))
     with pytest.raises(VrsError, match="non-finite"):
         maps.load_map(maps.save_map(nan, tmp_path / "nan", stats))
+
+
+def test_sigterm_during_training_is_a_clean_stop(toy_nerf, tmp_path):
+    """SIGTERM mid-training: one line on stderr (no native stack), exit status 143, whole
+    checkpoints only."""
+    out = tmp_path / "run"
+    args = nerf_args(toy_nerf, out, 400, "--set", "checkpoint_every=10", "--views", "1")
+    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
+           "raise SystemExit(train_nerf.main())"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline, ckpt = time.time() + 120, out / "checkpoints"
+        while time.time() < deadline and proc.poll() is None:
+            if ckpt.is_dir() and any(p.name.isdigit() for p in ckpt.iterdir()):
+                break
+            time.sleep(0.2)
+        assert proc.poll() is None, "training finished before it could be stopped"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "Fatal" not in err, err
+    assert [ln for ln in err.splitlines() if ln.strip()] == [
+        "terminated (SIGTERM); what was saved is kept: re-run the same command to continue"]
+    assert not list(ckpt.glob("*.orbax-checkpoint-tmp*"))

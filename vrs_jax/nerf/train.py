@@ -18,8 +18,10 @@ steps and stops before anything non-finite, or collapsed (:func:`check_health`),
 from __future__ import annotations
 
 import atexit
+import contextlib
 import dataclasses
 import functools
+import io
 import json
 import logging
 import math
@@ -29,7 +31,7 @@ import shutil
 import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -44,7 +46,7 @@ from tqdm.auto import tqdm
 
 from vrs_jax import fileio
 from vrs_jax.data.scene import Scene
-from vrs_jax.errors import VrsError
+from vrs_jax.errors import VrsError, sigterm_stops
 from vrs_jax.nerf import clusters as clusters_lib
 from vrs_jax.nerf import data as data_lib
 from vrs_jax.nerf import distributed as dist
@@ -421,6 +423,27 @@ def _quiet_orbax_logs() -> None:
             h.addFilter(_DROP_ORBAX)
 
 
+@contextlib.contextmanager
+def _captured_noise() -> Iterator[None]:
+    """Keep what orbax and tensorstore print while reading a damaged checkpoint (absl/orbax
+    log records, tracebacks of their callbacks into closed event loops) off the terminal:
+    the caller reports the failure as one line. Captured text goes to the DEBUG log."""
+    buf = io.StringIO()
+    handler = logging.StreamHandler(buf)
+    loggers = [logging.getLogger(n) for n in ("absl", "orbax", "asyncio")]
+    saved = [(lg.handlers, lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.handlers, lg.propagate = [handler], False
+    try:
+        with contextlib.redirect_stderr(buf):
+            yield
+    finally:
+        for lg, (handlers, propagate) in zip(loggers, saved, strict=True):
+            lg.handlers, lg.propagate = handlers, propagate
+        if buf.getvalue():
+            logging.getLogger("vrs_jax").debug("orbax while restoring:\n%s", buf.getvalue())
+
+
 def _preflight(directory: Path, tree: Any, step: int) -> None:
     """Refuse a save that cannot fit before orbax starts it (orbax's failure midway is noisy):
     free space on the device and the process's file size limit against the state's bytes."""
@@ -534,20 +557,29 @@ def restore_latest(mngr: ocp.CheckpointManager, template: TrainState,
     warn = warn or (lambda s: warnings.warn(s, stacklevel=3))
     steps = sorted(mngr.all_steps(), reverse=True)
     bad: list[int] = []
-    for s in steps:
-        try:
-            state, meta = restore_checkpoint(mngr, template, s)
-        except VrsError as e:
-            bad.append(s)
-            warn(f"warning: {e}; trying an earlier checkpoint")
-            continue
+    lines: list[str] = []
+    with _captured_noise():  # orbax's noise about the damaged ones stays off the terminal
+        for s in steps:
+            try:
+                state, meta = restore_checkpoint(mngr, template, s)
+                break
+            except VrsError as e:
+                bad.append(s)
+                lines.append(f"warning: {e}; trying an earlier checkpoint")
+        else:
+            state = None
         if bad:
-            warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
-                 f"damaged step(s) {', '.join(map(str, bad))})")
-        return state, meta, bad
-    raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or incompatible "
-                   "checkpoint data); move the folder away to train from scratch",
-                   Path(str(mngr.directory)))
+            time.sleep(0.5)  # tensorstore's late callbacks into orbax's closed loops
+    for line in lines:
+        warn(line)
+    if state is None:
+        raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or "
+                       "incompatible checkpoint data); move the folder away to train from "
+                       "scratch", Path(str(mngr.directory)))
+    if bad:
+        warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
+             f"damaged step(s) {', '.join(map(str, bad))})")
+    return state, meta, bad
 
 
 def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointManager:
@@ -685,6 +717,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     steps_after_compile = start_step
     held = math.nan
     best_psnr = None
+    stop_on_sigterm = sigterm_stops()  # a kill is a clean stop: checkpoints stay whole
+    stop_on_sigterm.__enter__()
     try:
         s = start_step
         while s < target and (multi or time.perf_counter() < deadline):
@@ -736,6 +770,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
         if mngr is not None and done != last_good and done > start_step:
             save_checkpoint(mngr, state, meta)
     finally:
+        stop_on_sigterm.__exit__(None, None, None)
         bar.close()
         if mngr is not None:
             try:
