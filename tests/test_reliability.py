@@ -343,26 +343,37 @@ def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tmp_path):
     assert e.value.path == str(ckpt.absolute())
 
 
+def start_training(args: list[str]) -> subprocess.Popen:
+    """``train_nerf ARGS`` in a subprocess (stdout dropped, stderr piped as text)."""
+    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
+           "raise SystemExit(train_nerf.main())"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    return subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def wait_for_checkpoint(proc: subprocess.Popen, ckpt: Path, step: int) -> None:
+    """Wait (2 minutes at most) until ``ckpt`` holds a checkpoint of ``step`` or later; the
+    training must still be running."""
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        steps = [int(p.name) for p in ckpt.glob("*") if p.name.isdigit()] \
+            if ckpt.is_dir() else []
+        if steps and max(steps) >= step:
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, "training finished before it could be stopped"
+
+
 def test_kill9_during_training_then_resume(toy_nerf, tmp_path):
     """SIGKILL mid-training leaves whole checkpoints only; the same command resumes to the
     final step."""
     out = tmp_path / "run"
     args = nerf_args(toy_nerf, out, 150, "--set", "checkpoint_every=10", "--views", "1")
-    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
-           "raise SystemExit(train_nerf.main())"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = start_training(args)
     try:
-        deadline = time.time() + 120
         ckpt = out / "checkpoints"
-        while time.time() < deadline and proc.poll() is None:
-            steps = [int(p.name) for p in ckpt.glob("*") if p.name.isdigit()] \
-                if ckpt.is_dir() else []
-            if steps and max(steps) >= 20:
-                break
-            time.sleep(0.2)
-        assert proc.poll() is None, "training finished before it could be killed"
+        wait_for_checkpoint(proc, ckpt, 20)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
@@ -661,18 +672,10 @@ def test_sigterm_during_training_is_a_clean_stop(toy_nerf, tmp_path):
     checkpoints only."""
     out = tmp_path / "run"
     args = nerf_args(toy_nerf, out, 400, "--set", "checkpoint_every=10", "--views", "1")
-    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
-           "raise SystemExit(train_nerf.main())"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = start_training(args)
+    ckpt = out / "checkpoints"
     try:
-        deadline, ckpt = time.time() + 120, out / "checkpoints"
-        while time.time() < deadline and proc.poll() is None:
-            if ckpt.is_dir() and any(p.name.isdigit() for p in ckpt.iterdir()):
-                break
-            time.sleep(0.2)
-        assert proc.poll() is None, "training finished before it could be stopped"
+        wait_for_checkpoint(proc, ckpt, 10)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
