@@ -344,26 +344,37 @@ def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tmp_path):
     assert e.value.path == str(ckpt.absolute())
 
 
+def start_training(args: list[str]) -> subprocess.Popen:
+    """``train_nerf ARGS`` in a subprocess (stdout dropped, stderr piped as text)."""
+    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
+           "raise SystemExit(train_nerf.main())"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    return subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def wait_for_checkpoint(proc: subprocess.Popen, ckpt: Path, step: int) -> None:
+    """Wait (2 minutes at most) until ``ckpt`` holds a checkpoint of ``step`` or later; the
+    training must still be running."""
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        steps = [int(p.name) for p in ckpt.glob("*") if p.name.isdigit()] \
+            if ckpt.is_dir() else []
+        if steps and max(steps) >= step:
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, "training finished before it could be stopped"
+
+
 def test_kill9_during_training_then_resume(toy_nerf, tmp_path):
     """SIGKILL mid-training leaves whole checkpoints only; the same command resumes to the
     final step."""
     out = tmp_path / "run"
     args = nerf_args(toy_nerf, out, 150, "--set", "checkpoint_every=10", "--views", "1")
-    code = f"import sys; sys.argv = ['x'] + {args!r}; from vrs_jax.cli import train_nerf; " \
-           "raise SystemExit(train_nerf.main())"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = start_training(args)
     try:
-        deadline = time.time() + 120
         ckpt = out / "checkpoints"
-        while time.time() < deadline and proc.poll() is None:
-            steps = [int(p.name) for p in ckpt.glob("*") if p.name.isdigit()] \
-                if ckpt.is_dir() else []
-            if steps and max(steps) >= 20:
-                break
-            time.sleep(0.2)
-        assert proc.poll() is None, "training finished before it could be killed"
+        wait_for_checkpoint(proc, ckpt, 20)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
@@ -633,3 +644,218 @@ def test_valid_query_inputs_still_pass(real_localizer):
     half = K.copy()
     half[:2] /= 2
     validate(gray[::2, ::2], half, np.zeros(5))
+
+
+# ----------------------------------------------------------------------------- issue 23
+
+
+def test_evaluate_json_never_overwrites(tmp_path, capsys, small_synthetic_scene):
+    """``--json`` pointed at an existing file (here the results file itself) is refused with
+    one line unless --overwrite."""
+    from vrs_jax.cli import evaluate
+
+    res = tmp_path / "results.txt"
+    res.write_text("seq-02/frame-000000.color.png 1 0 0 0 0 0 0\n")
+    base = ["--results", str(res), "--format", "7scenes", "--root", str(small_synthetic_scene)]
+    before = snapshot(tmp_path)
+    line = assert_one_error_line(evaluate.main([*base, "--json", str(res)]),
+                                 capsys.readouterr().err, res)
+    assert "--overwrite" in line and snapshot(tmp_path) == before
+    other = tmp_path / "eval.json"
+    other.write_text("{}\n")
+    assert evaluate.main([*base, "--json", str(other), "--overwrite"]) == 0
+    assert "median" in json.dumps(json.loads(other.read_text()))
+
+
+def test_output_folder_lock(tmp_path):
+    """The lock is exclusive; a lock of a dead process is taken over with a warning."""
+    out = tmp_path / "run"
+    with fileio.folder_lock(out) as d:
+        assert d == out and fileio.lock_path(out).is_file()
+        with pytest.raises(VrsError, match=f"in use by process {os.getpid()}") as e:
+            with fileio.folder_lock(out):
+                pass
+        assert e.value.path == str(out)
+    assert not fileio.lock_path(out).exists()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    fileio.lock_path(out).write_text(f"{dead.pid} {os.uname().nodename}\n")
+    warned = []
+    with fileio.folder_lock(out, warn=warned.append):
+        assert fileio.lock_path(out).read_text().split()[0] == str(os.getpid())
+    assert len(warned) == 1 and str(dead.pid) in warned[0]
+
+
+@pytest.mark.parametrize("command", ["localize", "train"])
+def test_second_run_into_a_locked_folder_is_refused(command, tmp_path, capsys, tiny_map,
+                                                    small_synthetic_scene):
+    from vrs_jax.cli import localize, train
+
+    out = tmp_path / "out"
+    owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        fileio.lock_path(out).write_text(f"{owner.pid} {os.uname().nodename}\n")
+        args = {"localize": (localize.main, ["--map", str(tiny_map), "--out", str(out),
+                                             "--config", "test", "--quiet"]),
+                "train": (train.main, ["--format", "7scenes", "--root",
+                                       str(small_synthetic_scene), "--out", str(out),
+                                       "--config", "test", "--quiet"])}
+        main, argv = args[command]
+        line = assert_one_error_line(main(argv), capsys.readouterr().err, out)
+        assert f"process {owner.pid}" in line
+        assert not out.exists()
+    finally:
+        owner.kill()
+        owner.wait()
+
+
+def test_localize_run_folder_is_a_transaction(tiny_map, tmp_path, capsys, monkeypatch):
+    """A run that fails while writing (a full disk at summary.json) leaves the earlier run's
+    files as they were (with --overwrite too) and no --out at all when there was none; a
+    complete --overwrite run replaces the folder as a whole."""
+    from vrs_jax.cli import localize
+
+    out = tmp_path / "loc"
+    args = ["--map", str(tiny_map), "--out", str(out), "--config", "test", "--mode", "real",
+            "--no-timing", "--quiet"]
+    real_write_json = fileio.write_json
+
+    def full_disk(path, obj):
+        if Path(path).name == "summary.json":
+            raise VrsError("cannot write: no space left on the device", path)
+        return real_write_json(path, obj)
+
+    monkeypatch.setattr(fileio, "write_json", full_disk)
+    assert_one_error_line(localize.main(args), capsys.readouterr().err, out / "summary.json")
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(fileio, "write_json", real_write_json)
+    assert localize.main(args) == 0
+    (out / "note.txt").write_text("from the earlier run\n")
+    before = snapshot(out)
+    monkeypatch.setattr(fileio, "write_json", full_disk)
+    assert_one_error_line(localize.main([*args, "--overwrite"]), capsys.readouterr().err,
+                          out / "summary.json")
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loc"]
+    monkeypatch.setattr(fileio, "write_json", real_write_json)
+    assert localize.main([*args, "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["results.txt", "run.json", "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loc"]
+
+
+def test_staged_folder_recovers_a_swap_cut_by_a_kill(tmp_path):
+    """A kill between the swap's two renames leaves FOLDER.old-PID and no FOLDER: the next
+    staged write puts the old folder back before it starts (and drops the dead staging)."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    d = tmp_path / "map"
+    old = tmp_path / f"map.old-{dead.pid}"
+    old.mkdir()
+    (old / "a.txt").write_text("old\n")
+    (tmp_path / f"map.tmp-{dead.pid}").mkdir()
+    with fileio.staged_folder(d, carry=["a.txt"]) as tmp:
+        assert (tmp / "a.txt").read_text() == "old\n"
+        fileio.write_text(tmp / "b.txt", "new\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map"]
+    assert sorted(p.name for p in d.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_map_records_its_dataset_and_refuses_another(tiny_map, small_synthetic_scene,
+                                                     tmp_path, capsys):
+    """map.json records the dataset (resolved root, format, split, fingerprint of the
+    reference names, sizes and poses); training into it from another dataset is one line,
+    the same dataset (here copied elsewhere) resumes as before."""
+    from vrs_jax.cli import train
+
+    meta = fileio.read_json(tiny_map / "map.json")
+    prov = meta["provenance"]
+    assert prov["root"] == str(Path(small_synthetic_scene).resolve())
+    assert prov["format"] == "7scenes" and len(prov["fingerprint"]) == 64
+    assert prov["split"]["n_reference"] == len(meta["names"])
+    m = tmp_path / "map"
+    shutil.copytree(tiny_map, m)
+    same, other = tmp_path / "same", tmp_path / "other"
+    shutil.copytree(small_synthetic_scene, same)
+    shutil.copytree(small_synthetic_scene, other)
+    pose = other / "seq-01" / "frame-000003.pose.txt"
+    rows = np.loadtxt(pose)
+    rows[0, 3] += 0.01  # one reference pose moved by a centimetre
+    np.savetxt(pose, rows)
+    before = snapshot(m)
+    args = ["--format", "7scenes", "--out", str(m), "--config", "test", "--quiet", "--root"]
+    line = assert_one_error_line(train.main([*args, str(other)]), capsys.readouterr().err, m)
+    assert f"{m} was built from {prov['root']} (fingerprint {prov['fingerprint'][:12]}" in line
+    assert f"not {other.resolve()}" in line
+    assert snapshot(m) == before
+    assert train.main([*args, str(same)]) == 0
+    assert "already trained" in capsys.readouterr().err
+
+
+def test_steps_below_one_are_refused_at_parsing(capsys, tmp_path):
+    from vrs_jax.cli import train, train_nerf
+
+    for main in (train.main, train_nerf.main):
+        for steps in ("0", "-5"):
+            with pytest.raises(SystemExit) as e:
+                main(["--format", "nerf", "--root", str(tmp_path), "--out",
+                      str(tmp_path / "o"), "--steps", steps])
+            assert e.value.code == 2
+            err = capsys.readouterr().err
+            assert f"--steps: invalid count {steps}: must be >= 1" in err
+            assert "Traceback" not in err and not (tmp_path / "o").exists()
+
+
+def test_psnr_collapse_stops_training(small_synthetic_scene, tmp_path):
+    """lr 1e4 collapses the training PSNR (12.9 -> 3.9 dB on the room): stopped at the first
+    host read, before any checkpoint of the collapsed state is saved."""
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.nerf import train as T
+    from vrs_jax.nerf.config import get_config
+
+    cfg = get_config("test", lr_init=1e4, lr_final=1e4, log_every=10, checkpoint_every=10,
+                     eval_every=1000)
+    prep = T.prepare(load_scene("7scenes", small_synthetic_scene), cfg)
+    with pytest.raises(T.TrainingDiverged, match=r"diverged by step 10 \(cluster 0: training "
+                                                 r"PSNR collapsed to .*no checkpoint"):
+        T.train(prep, tmp_path / "run", steps=40, progress=False)
+    assert not list((tmp_path / "run" / "checkpoints").glob("[0-9]*"))
+
+
+def test_load_map_refuses_an_untrained_or_non_finite_nerf(tiny_map, tmp_path):
+    import jax
+
+    from vrs_jax import maps
+
+    m = maps.load_map(tiny_map)
+    stats = maps.read_stats(tiny_map)
+    never = maps.save_map(m, tmp_path / "never", {**stats, "ilm": {"steps": 0}})
+    with pytest.raises(VrsError, match="never trained") as e:
+        maps.load_map(never)
+    assert e.value.path == str(never / "ilm.npz")
+    params = jax.tree.map(lambda x: x.at[(0,) * x.ndim].set(np.nan),
+                          m.ilm.fields.params)
+    nan = m.replace(ilm=m.ilm.replace(fields=m.ilm.fields.replace(params=params)))
+    with pytest.raises(VrsError, match="non-finite"):
+        maps.load_map(maps.save_map(nan, tmp_path / "nan", stats))
+
+
+def test_sigterm_during_training_is_a_clean_stop(toy_nerf, tmp_path):
+    """SIGTERM mid-training: one line on stderr (no native stack), exit status 143, whole
+    checkpoints only."""
+    out = tmp_path / "run"
+    args = nerf_args(toy_nerf, out, 400, "--set", "checkpoint_every=10", "--views", "1")
+    proc = start_training(args)
+    ckpt = out / "checkpoints"
+    try:
+        wait_for_checkpoint(proc, ckpt, 10)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "Fatal" not in err, err
+    assert [ln for ln in err.splitlines() if ln.strip()] == [
+        "terminated (SIGTERM); what was saved is kept: re-run the same command to continue"]
+    assert not list(ckpt.glob("*.orbax-checkpoint-tmp*"))

@@ -8,9 +8,12 @@ that line instead of a traceback (see :func:`cli_main`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -49,13 +52,41 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
     @functools.wraps(fn)
     def wrapper(*args, **kwargs) -> int:
         try:
-            rc = fn(*args, **kwargs)
+            with sigterm_stops():
+                rc = fn(*args, **kwargs)
         except VrsError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
+        except Terminated:
+            print("terminated (SIGTERM); what was saved is kept: re-run the same command to "
+                  "continue", file=sys.stderr)
+            return 128 + signal.SIGTERM
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             return 130
         return 0 if rc is None else int(rc)
 
     return wrapper
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: unwinds like Ctrl-C (``finally`` blocks close checkpoints)."""
+
+
+@contextlib.contextmanager
+def sigterm_stops() -> Iterator[None]:
+    """Within the block SIGTERM raises :class:`Terminated` in the main thread: a clean stop
+    instead of the native stack dump of the failure handler that XLA/tensorstore install
+    when loaded (so code that loads them re-arms it: nerf.train's loop)."""
+
+    def stop(signum, frame):
+        raise Terminated
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

@@ -9,12 +9,16 @@ Files get mode 0644 (umask applied), whatever the writer.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import glob
 import hashlib
 import json
 import math
 import os
-from collections.abc import Callable, Mapping
+import shutil
+import sys
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -187,3 +191,191 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# ----------------------------------------------------------------------------- output rules
+
+
+def check_new(path: str | Path, overwrite: bool = False) -> Path:
+    """The one rule for every output path: an existing file, or a folder that is not empty,
+    is refused (one VrsError line naming it) unless ``overwrite``."""
+    p = Path(path)
+    taken = p.is_file() or p.is_symlink() or (p.is_dir() and any(p.iterdir()))
+    if taken and not overwrite:
+        raise VrsError("already exists; pass --overwrite to replace it or choose another path",
+                       p)
+    return p
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this id exists on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by another user
+    return True
+
+
+def _sibling(folder: Path, tag: str, pid: int | None = None) -> Path:
+    """``folder``'s sibling ``NAME.TAG-PID`` (this process's pid by default)."""
+    return folder.with_name(f"{folder.name}.{tag}-{os.getpid() if pid is None else pid}")
+
+
+def lock_path(folder: str | Path) -> Path:
+    """The lock file of an output folder: ``NAME.lock`` beside it (outside the folder, which
+    a run may replace as a whole)."""
+    d = Path(folder)
+    return d.with_name(d.name + ".lock")
+
+
+def _lock_owner(lock: Path) -> tuple[int, str]:
+    """(pid, host) recorded in a lock file ((0, "") when unreadable or half-written)."""
+    try:
+        pid, _, host = lock.read_text().strip().partition(" ")
+        return int(pid), host
+    except (OSError, ValueError):
+        return 0, ""
+
+
+def _take_lock(lock: Path) -> bool:
+    """Create ``lock`` holding ``PID HOST`` atomically (O_CREAT|O_EXCL); False if it exists.
+    OSError (after removing it) when the pid cannot be written (a full disk)."""
+    try:
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, _MODE)
+    except FileExistsError:
+        return False
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()} {os.uname().nodename}\n")
+    except OSError:
+        lock.unlink(missing_ok=True)
+        raise
+    return True
+
+
+def _acquire(d: Path, lock: Path, warn: Callable[[str], None]) -> bool:
+    """Take the lock of ``d`` (a dead owner's is taken over with a warning); False when the
+    disk is too full to record it (the run goes on unlocked: it cannot write either)."""
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        while not _take_lock(lock):
+            pid, host = _lock_owner(lock)
+            if host == os.uname().nodename and pid > 0 and not pid_alive(pid):
+                warn(f"warning: {d}: taking over the lock of process {pid}, which is gone")
+                lock.unlink(missing_ok=True)
+                continue
+            raise VrsError(f"in use by process {pid} on {host or 'another host'} (its lock "
+                           f"is {lock}; remove it if that process is gone)", d)
+    except OSError as e:
+        if e.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT) and lock.parent.is_dir():
+            warn(f"warning: {d}: cannot lock the folder: {_reason(e)}")
+            return False
+        raise VrsError(f"cannot write here: {_reason(e)}", d) from None
+    return True
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | Path, warn: Callable[[str], None] | None = None
+                ) -> Iterator[Path]:
+    """Hold the lock of output folder ``folder`` for the ``with`` block.
+
+    A second process asking for it fails with one VrsError line naming the folder and the
+    owner's pid; a lock whose process is gone on this host (a killed run) is taken over with
+    a warning. The lock file is removed on exit.
+    """
+    d = Path(folder)
+    lock = lock_path(d)
+    held = _acquire(d, lock, warn or (lambda s: print(s, file=sys.stderr)))
+    try:
+        yield d
+    finally:
+        if held and _lock_owner(lock)[0] == os.getpid():
+            lock.unlink(missing_ok=True)
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """``src`` (file or folder) recreated at ``dst`` with hard links (copies where links are
+    not supported)."""
+
+    def link(a, b):
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    if src.is_dir():
+        shutil.copytree(src, dst, copy_function=link, symlinks=True)
+    else:
+        link(src, dst)
+
+
+def _recover(folder: Path) -> None:
+    """Finish or undo what a killed :func:`staged_folder` of a dead process left: its
+    staging folder is removed; the earlier folder set aside comes back if none replaced it."""
+    for p in sorted(folder.parent.glob(f"{glob.escape(folder.name)}.*-*")):
+        tag, _, pid = p.name[len(folder.name) + 1:].rpartition("-")
+        if tag not in ("tmp", "old") or not pid.isdigit() or pid_alive(int(pid)):
+            continue
+        if tag == "old" and not folder.exists():
+            os.replace(p, folder)  # the swap was cut between its two renames
+        else:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _swap_in(new: Path, folder: Path) -> None:
+    """Replace ``folder`` by ``new``: the old one renamed aside, the new one in, the old one
+    deleted."""
+    old = _sibling(folder, "old")
+    if folder.exists():
+        os.replace(folder, old)
+    try:
+        os.replace(new, folder)
+    except OSError:
+        if old.exists():
+            os.replace(old, folder)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged_folder(folder: str | Path, carry: Iterable[str] = ()) -> Iterator[Path]:
+    """A run folder as a transaction: yields a fresh sibling ``NAME.tmp-PID`` to write into,
+    which replaces ``folder`` only when the ``with`` block completes; on any failure it is
+    removed and ``folder`` is left as it was.
+
+    Args:
+      carry: names of entries of the existing ``folder`` to keep (hard-linked into the new
+        one first: checkpoints, work files).
+    Raises:
+      VrsError naming ``folder`` (errors about files in the staging folder are reported
+      under ``folder``'s name).
+    """
+    d = Path(folder)
+    if d.exists() and not d.is_dir():
+        raise VrsError("output path exists and is not a folder", d)
+    tmp = _sibling(d, "tmp")
+    try:
+        _recover(d)
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for name in carry:
+            _link_tree(d / name, tmp / name)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise VrsError(f"cannot write here: {_reason(e)}", d) from None
+    try:
+        yield tmp
+        _swap_in(tmp, d)
+    except VrsError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if e.path is None or not e.path.startswith(str(tmp)):
+            raise
+        raise VrsError(e.problem, str(d) + e.path[len(str(tmp)):], e.line) from None
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise VrsError(f"cannot write here: {_reason(e)}", d) from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

@@ -44,6 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-colmap", metavar="DIR",
                    help="also write the map as a COLMAP model (cameras, images, points3D)")
     p.add_argument("--binary", action="store_true", help="COLMAP export in binary (.bin)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a COLMAP model already in --export-colmap DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--verbose", action="store_true",
                    help="debug log lines, and COLMAP's log lines")
@@ -56,16 +58,18 @@ def main(argv: list[str] | None = None) -> int:
     start_run(args)
     t0 = time.perf_counter()
     cfg = maps.get_config(args.config)
-    out = fileio.check_writable(args.out)
-    scene = load_scene_from_args(args, sfm_dir=out / "sfm")
-    maps.build_map(scene, out, cfg, progress=not args.quiet, source_options=scene_opts(args),
-                   train_nerf=False)
-    m = maps.load_map(out, require_ilm=False)
-    print(f"EGM written to {out}")
-    if args.export_colmap:
-        d = export_colmap(m.egm, args.export_colmap, text=not args.binary)
-        print(f"COLMAP model written to {d}")
-    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
+    with fileio.folder_lock(args.out):  # one run per map folder
+        out = fileio.check_writable(args.out)
+        scene = load_scene_from_args(args, sfm_dir=out / "sfm")
+        maps.build_map(scene, out, cfg, progress=not args.quiet, source_options=scene_opts(args),
+                       train_nerf=False)
+        m = maps.load_map(out, require_ilm=False)
+        print(f"EGM written to {out}")
+        if args.export_colmap:
+            d = export_colmap(m.egm, args.export_colmap, text=not args.binary,
+                              overwrite=args.overwrite)
+            print(f"COLMAP model written to {d}")
+        record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from vrs_jax.errors import VrsError
@@ -42,6 +43,21 @@ def _parse_value(text: str):
         except ValueError:
             pass
     return text
+
+
+def count_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse ``type``: an integer >= ``minimum`` (else argparse's one error line)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid count {text!r}: not an integer") from None
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"invalid count {v}: must be >= {minimum}")
+        return v
+
+    return parse
 
 
 def parse_opts(items: list[str]) -> dict:

@@ -1,7 +1,7 @@
 """Evaluate a results file against a dataset's query ground truth (docs/design.md, section 6).
 
     python -m experiments.evaluate --results OUT/results.txt --format 7scenes --root DIR \\
-        [--query-every N] [--downscale N] [--opt KEY=VALUE ...] [--json OUT/eval.json]
+        [--query-every N] [--downscale N] [--opt KEY=VALUE ...] [--json OUT/eval.json [--overwrite]]
 
 The queries are the dataset's query images as ``vrs_jax.data.readers.load_scene`` returns
 them with the same options the localize run used (e.g. ``--query-every 8`` for lego).
@@ -134,7 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="further reader option, repeatable (e.g. --opt pgt=PATH for 7Scenes)")
     p.add_argument("--json", default=None, metavar="OUT",
                    help="also write the metrics and per-query errors as JSON here (and the "
-                        "run record, run.json, beside it)")
+                        "run record, run.json, beside it); an existing file is refused "
+                        "unless --overwrite")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
 
@@ -147,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         if not Path(args.json).parent.is_dir():
             raise VrsError("output folder not found", Path(args.json).parent)
         fileio.check_writable(Path(args.json).parent)
+        fileio.check_new(args.json, args.overwrite)
     results = read_results(args.results)
     opts = parse_opts(args.opt)
     if args.query_every is not None:

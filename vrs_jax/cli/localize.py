@@ -15,8 +15,9 @@ OUTDIR/summary.json (metrics when the queries have ground truth, map bytes, medi
 stage, rays and NeRF evaluations per query, per-query diagnostics). A query that fails (no
 keypoints, no matches, RANSAC failure) still gets a line: the pose of its top-1 retrieved
 reference image, flagged in summary.json; an unreadable query image is listed with its reason.
-Existing results are never replaced without --overwrite. A run record (command line,
-settings, code and library versions, timings) goes to OUTDIR/run.json.
+An existing --out is never replaced without --overwrite, and only once the new run is
+complete (written into OUTDIR.tmp-PID first; OUTDIR.lock marks a folder in use). A run record
+(command line, settings, code and library versions, timings) goes to OUTDIR/run.json.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "table and, per query, its matches and its rendered and real patches "
                         "(runs the stages once more per query)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace results already in --out")
+                   help="replace an existing --out (once the new run is complete)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verbose", action="store_true", help="debug log lines")
     return p
@@ -102,9 +103,9 @@ def make_config(m: maps.Map, args) -> localize.LocalizeConfig:
     return localize.get_config(args.config, **over)
 
 
-def query_scene(m: maps.Map, args):
-    """The query images: the map's own held-out split, those of the named dataset, or those
-    of a query list."""
+def query_scene(m: maps.Map, args, sfm_dir: Path):
+    """The query images: the map's own held-out split, those of the named dataset (a photo
+    folder is posed by SfM with its work files in ``sfm_dir``), or those of a query list."""
     if args.images is not None or args.queries is not None:
         if args.images is None or args.queries is None:
             raise VrsError("pass both --images and --queries")
@@ -114,7 +115,6 @@ def query_scene(m: maps.Map, args):
         queries = query_list_scene(args.queries, args.images)
         refuse_map_images(m, queries)
         return queries
-    sfm_dir = Path(args.out) / "sfm"
     if args.root is None and args.fmt is None:
         src = m.source
         sfm_dir = Path(args.map) / "sfm"  # photos: the map's own SfM poses (same frame)
@@ -155,16 +155,29 @@ def refuse_map_images(m: maps.Map, queries) -> None:
 
 
 def run(args, argv: list[str] | None = None) -> dict:
+    """Localize into a fresh staging folder under the lock of --out; it replaces --out only
+    once complete (an existing --out needs --overwrite), so a failed run changes nothing."""
     start_run(args)
     t_start = time.perf_counter()
     out = Path(args.out)
-    if (out / "results.txt").exists() and not args.overwrite:
-        raise VrsError("holds results of an earlier run; pass --overwrite or choose another "
-                       "--out", out)
-    fileio.check_writable(out)
+    with fileio.folder_lock(out):
+        fileio.check_new(out, args.overwrite)
+        with fileio.staged_folder(out) as stage:
+            summary, title = localize_into(stage, args, argv, t_start)
+    if summary["recall"] is not None:
+        print(metrics.format_table(summary, title=title))
+    print(f"{summary['n_success']}/{summary['n_queries']} localized, {summary['n_fallback']} "
+          f"fallback, {summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
+    return summary
+
+
+def localize_into(out: Path, args, argv: list[str] | None, t_start: float
+                  ) -> tuple[dict, str]:
+    """Load the map, localize the queries, write results.txt, summary.json and run.json
+    into ``out``. Returns (summary, title of its table)."""
     m = maps.load_map(args.map, descriptors=args.mode != "render")
     cfg = make_config(m, args)
-    queries = query_scene(m, args)
+    queries = query_scene(m, args, out / "sfm")
     results, info = localize_scene(m, queries, cfg, progress=not args.quiet,
                                    timed=not args.no_timing)
     ok = [i for i, r in enumerate(results) if r is not None]
@@ -186,11 +199,7 @@ def run(args, argv: list[str] | None = None) -> dict:
     record_run(out, args, cfg, {"total": time.perf_counter() - t_start,
                                 **{k: v for k, v in info["timing_s"].items() if v is not None}},
                argv)
-    if summary["recall"] is not None:
-        print(metrics.format_table(summary, title=f"{cfg.source} mode, {len(queries)} queries"))
-    print(f"{summary['n_success']}/{len(queries)} localized, {summary['n_fallback']} fallback, "
-          f"{summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
-    return summary
+    return summary, f"{cfg.source} mode, {len(queries)} queries"
 
 
 def per_query(name: str, r, error: str | None) -> dict:

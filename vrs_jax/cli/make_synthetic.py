@@ -20,7 +20,7 @@ import dataclasses
 import re
 import time
 
-from vrs_jax.cli.common import prog, record_run, start_run
+from vrs_jax.cli.common import count_at_least, prog, record_run, start_run
 from vrs_jax.data.synthetic import CONFIGS, generate, get_config, is_generated
 from vrs_jax.errors import cli_main
 
@@ -36,19 +36,6 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _count(minimum: int):
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"invalid count {text!r}: not an integer") from None
-        if v < minimum:
-            raise argparse.ArgumentTypeError(f"invalid count {v}: must be >= {minimum}")
-        return v
-
-    return parse
-
-
 def build_parser() -> argparse.ArgumentParser:
     d = get_config("default")
     p = argparse.ArgumentParser(
@@ -62,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default="default", choices=sorted(CONFIGS),
                    help="named scene config the other options override (default: the room; "
                         "rooms4: the large four-room scene at 160x120)")
-    p.add_argument("--rooms", type=_count(1), default=None, metavar="N",
+    p.add_argument("--rooms", type=count_at_least(1), default=None, metavar="N",
                    help="rooms in a row joined by doorways, each with its own camera loop "
                         "(default: the config's; --n-ref/--n-query then count the frames "
                         "of a 5 m room's loop)")
@@ -70,10 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"random seed of the room, boxes, textures and paths (default {d.seed})")
     p.add_argument("--size", type=_size, default=None, metavar="WxH",
                    help=f"image size (default: the config's, {d.width}x{d.height} for the room)")
-    p.add_argument("--n-ref", type=_count(2), default=None, metavar="N",
+    p.add_argument("--n-ref", type=count_at_least(2), default=None, metavar="N",
                    help=f"reference frames on the loop (default: the config's, "
                         f"{d.n_reference} for the room)")
-    p.add_argument("--n-query", type=_count(0), default=None, metavar="N",
+    p.add_argument("--n-query", type=count_at_least(0), default=None, metavar="N",
                    help=f"query frames on the offset path (default: the config's, {d.n_query} "
                         "for the room)")
     p.add_argument("--overwrite", action="store_true",

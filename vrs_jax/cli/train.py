@@ -20,6 +20,7 @@ from vrs_jax import maps
 from vrs_jax.cli.common import (
     HelpFormatter,
     add_scene_args,
+    count_at_least,
     load_scene_from_args,
     prog,
     record_run,
@@ -40,12 +41,12 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
     p.add_argument("--out", required=True, help="map folder to write (created; resumable)")
     p.add_argument("--config", default=default_config, choices=sorted(maps.CONFIGS),
                    help="named map configuration (EGM and NeRF settings, stored by value)")
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--steps", type=count_at_least(1), default=None,
                    help="NeRF training steps, also the lr schedule's length (default: the "
                         "config's; a larger value continues a finished map)")
     p.add_argument("--minutes", type=float, default=None,
                    help="wall-clock cap on this run's NeRF training (re-run to continue)")
-    p.add_argument("--clusters", type=int, default=None,
+    p.add_argument("--clusters", type=count_at_least(1), default=None,
                    help="number of NeRF clusters (default: the config's)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "
@@ -76,13 +77,14 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
     t0 = time.perf_counter()
     cfg = map_config(args)
     out = Path(args.out)
-    fileio.check_writable(out)  # before any work starts
-    scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
-    print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} reference and "
-          f"{int(scene.is_query.sum())} query images")
-    maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
-                   source_options=scene_opts(args))
-    record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
+    with fileio.folder_lock(out):  # one run per map folder
+        fileio.check_writable(out)  # before any work starts
+        scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
+        print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
+              f"reference and {int(scene.is_query.sum())} query images")
+        maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
+                       source_options=scene_opts(args))
+        record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 

@@ -28,6 +28,7 @@ from vrs_jax import fileio
 from vrs_jax.cli.common import (
     RawHelpFormatter,
     add_scene_args,
+    count_at_least,
     load_scene_from_args,
     prog,
     record_run,
@@ -44,8 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default="cpu-small", help="NeRF config: paper, cpu-small, test")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NerfConfig field, repeatable (e.g. --set lindisp=true)")
-    p.add_argument("--clusters", type=int, default=None, help="number of clusters (K-means)")
-    p.add_argument("--steps", type=int, default=None, help="total training steps")
+    p.add_argument("--clusters", type=count_at_least(1), default=None,
+                   help="number of clusters (K-means)")
+    p.add_argument("--steps", type=count_at_least(1), default=None,
+                   help="total training steps")
     p.add_argument("--minutes", type=float, default=None,
                    help="wall-clock budget of this run (compilation included)")
     p.add_argument("--near", type=float, default=None, help="near bound override (t = depth)")

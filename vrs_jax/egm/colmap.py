@@ -59,9 +59,13 @@ def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
     return rec
 
 
-def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True) -> Path:
-    """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin)."""
+def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True,
+                  overwrite: bool = False) -> Path:
+    """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin); a model
+    already there is refused unless ``overwrite``."""
     d = fileio.check_writable(out_dir)
+    for name in ("cameras", "images", "points3D"):
+        fileio.check_new(d / f"{name}.{'txt' if text else 'bin'}", overwrite)
     rec = to_colmap(egm)
     if text:
         rec.write_text(d)  # fileio-exempt: pycolmap writes its own files

@@ -9,6 +9,7 @@ continues from the last checkpoint.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -35,13 +36,52 @@ def scene_source(scene: Scene, options: dict[str, Any] | None = None) -> MapSour
                      query_names=tuple(scene.queries().names))
 
 
-def _existing(out: Path, cfg: MapConfig, source: MapSource) -> tuple[Map | None, dict]:
+def fingerprint(scene: Scene) -> str:
+    """SHA-256 over the scene's reference images, sorted by name: each name, its file size
+    and its pose (R, t rounded to 1e-9): what a map is built from."""
+    refs = scene.references()
+    h = hashlib.sha256()
+    for i in sorted(range(len(refs.names)), key=lambda k: refs.names[k]):
+        try:
+            size = Path(refs.image_paths[i]).stat().st_size
+        except OSError:
+            size = -1
+        pose = np.concatenate([np.ravel(refs.R[i]), np.ravel(refs.t[i])])
+        h.update(f"{refs.names[i]}\0{size}\0".encode())
+        h.update((np.round(np.asarray(pose, np.float64), 9) + 0.0).tobytes())
+    return h.hexdigest()
+
+
+def provenance(scene: Scene, source: MapSource) -> dict[str, Any]:
+    """What a map records it was built from: the dataset root (resolved), format, split and
+    :func:`fingerprint`."""
+    return {"root": str(Path(scene.root).resolve()), "format": scene.format,
+            "split": {"options": dict(source.options),
+                      "n_reference": len(scene.references().names),
+                      "query_names_sha256": fileio.sha256(
+                          "\n".join(sorted(source.query_names)).encode())},
+            "fingerprint": fingerprint(scene)}
+
+
+def _check_provenance(out: Path, meta: dict, prov: dict) -> None:
+    """VrsError unless the map in ``out`` was built from the dataset ``prov`` describes (maps
+    written before provenance was recorded pass)."""
+    old = meta.get("provenance") or {}
+    if old.get("fingerprint") and old["fingerprint"] != prov["fingerprint"]:
+        raise VrsError(f"{out} was built from {old.get('root')} (fingerprint "
+                       f"{old['fingerprint'][:12]}), not {prov['root']} (fingerprint "
+                       f"{prov['fingerprint'][:12]}); use another --out")
+
+
+def _existing(out: Path, cfg: MapConfig, source: MapSource, prov: dict
+              ) -> tuple[Map | None, dict]:
     """The map already in ``out`` (if any) after checking it may be extended."""
     if not (out / map_io.META).is_file():
         if out.exists() and any(p.name != "sfm" for p in out.iterdir()):
             raise VrsError("folder exists and is not a vrs-jax map; choose an empty --out", out)
         return None, {}
     meta = map_io.read_meta(out)
+    _check_provenance(out, meta, prov)
     old = load_partial(out)
     if old.source.format != source.format or old.source.query_names != source.query_names:
         raise VrsError(f"this map folder was built from another dataset or split "
@@ -82,7 +122,8 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
     log = log or log_.info
     out = Path(out_dir)
     source = scene_source(scene, source_options)
-    m, stats = _existing(out, cfg, source)
+    prov = provenance(scene, source)
+    m, stats = _existing(out, cfg, source, prov)
     if (m is not None and m.ilm is not None and m.config == cfg and train_nerf
             and "map_bytes" in stats):
         log("[1/3] EGM: already built, skipping")
@@ -96,7 +137,7 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
         log(egm_build.format_stats(egm_stats))
         stats = {"egm": egm_stats}
         m = Map(egm=egm, ilm=None, config=cfg, source=source)
-        map_io.save_map(m, out, stats)
+        map_io.save_map(m, out, stats, provenance=prov)
     else:
         log("[1/3] EGM: already built, skipping")
     if not train_nerf:
@@ -121,11 +162,9 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
                 "command to continue")
             return out
         m = m.replace(ilm=res.ilm, config=cfg)
-        map_io.save_map(m, out, stats)
     else:
         log("[2/3] ILM: already trained, skipping")
-    stats["map_bytes"] = map_io.map_bytes(out)
-    map_io.save_map(m, out, stats)
+    map_io.save_map(m, out, stats, measure=True, provenance=prov)
     log(f"[3/3] {describe(out)}")
     return out
 

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import flax.struct
+import jax
 import numpy as np
 
 from vrs_jax import configio, fileio
@@ -123,10 +124,50 @@ def _npz(arrays: dict[str, np.ndarray], compressed: bool = False) -> bytes:
     return buf.getvalue()
 
 
-def save_map(m: Map, folder: str | Path, stats: dict | None = None) -> Path:
-    """Write ``m`` into ``folder`` (data files first, each atomically; ``map.json`` last, so a
-    folder whose ``map.json`` is readable is complete). Returns the folder."""
-    d = fileio.check_writable(folder)
+MAP_FILES = (META, EGM_FILE, DESC_FILE, ILM_FILE)
+
+
+def save_map(m: Map, folder: str | Path, stats: dict | None = None, measure: bool = False,
+             provenance: dict | None = None) -> Path:
+    """Write ``m`` into ``folder`` as one transaction (:func:`vrs_jax.fileio.staged_folder`):
+    the map files go into a fresh sibling folder, the folder's other entries (NeRF
+    checkpoints, SfM work files, run records) are hard-linked in, and the new folder replaces
+    the old one only when complete, so a failure leaves the earlier map as it was.
+
+    Args:
+      stats: build statistics recorded in ``map.json``.
+      measure: also record the map's own sizes (:func:`map_bytes`) as ``stats["map_bytes"]``.
+      provenance: what the map was built from (:func:`vrs_jax.maps.build.provenance`); None
+        keeps the folder's earlier record.
+    Returns the folder.
+    """
+    d = Path(folder)
+    if provenance is None and (d / META).is_file():
+        provenance = fileio.read_json(d / META, "map metadata").get("provenance")
+    keep = [p.name for p in d.iterdir() if p.name not in MAP_FILES] if d.is_dir() else []
+    with fileio.staged_folder(d, carry=keep) as tmp:
+        blobs = _write_blobs(m, tmp)
+        meta = {
+            "kind": KIND,
+            "format_version": FORMAT_VERSION,
+            "config": configio.to_dict(m.config),
+            "source": configio.to_dict(m.source),
+            "provenance": provenance or {},
+            "names": list(m.egm.names),
+            "k_max": m.egm.k_max,
+            "files": {name: {"sha256": fileio.sha256(b), "bytes": len(b)}
+                      for name, b in blobs.items()},
+            "stats": dict(stats or {}),
+        }
+        fileio.write_json(tmp / META, meta)
+        if measure:
+            meta["stats"]["map_bytes"] = map_bytes(tmp)
+            fileio.write_json(tmp / META, meta)
+    return d
+
+
+def _write_blobs(m: Map, d: Path) -> dict[str, bytes]:
+    """Write the map's data files into ``d`` (each atomically). Returns {name: bytes}."""
     blobs = {EGM_FILE: _npz(egm_map.to_arrays(m.egm), compressed=EGM_COMPRESSED)}
     if m.has_descriptors:
         blobs[DESC_FILE] = _npz(egm_map.descriptor_arrays(m.egm))
@@ -138,21 +179,7 @@ def save_map(m: Map, folder: str | Path, stats: dict | None = None) -> Path:
         blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm, float16=NERF_FLOAT16)
     for name, data in blobs.items():
         fileio.write_bytes(d / name, data)
-    for name in {DESC_FILE, ILM_FILE} - set(blobs):
-        (d / name).unlink(missing_ok=True)  # stale files of an earlier state of this map
-    meta = {
-        "kind": KIND,
-        "format_version": FORMAT_VERSION,
-        "config": configio.to_dict(m.config),
-        "source": configio.to_dict(m.source),
-        "names": list(m.egm.names),
-        "k_max": m.egm.k_max,
-        "files": {name: {"sha256": fileio.sha256(b), "bytes": len(b)}
-                  for name, b in blobs.items()},
-        "stats": stats or {},
-    }
-    fileio.write_json(d / META, meta)
-    return d
+    return blobs
 
 
 # ----------------------------------------------------------------------------- load
@@ -232,9 +259,22 @@ def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = T
         if ilm.config != cfg.nerf:
             raise VrsError("the NeRF was trained with another config than map.json records",
                            d / ILM_FILE)
+        _check_trained(ilm, meta, d / ILM_FILE)
     elif require_ilm:
         raise VrsError("the map has no trained NeRF yet: finish its training run", d)
     return Map(egm=egm, ilm=ilm, config=cfg, source=source)
+
+
+def _check_trained(ilm: ILM, meta: dict, p: Path) -> None:
+    """VrsError unless the NeRF trained (``stats.ilm.steps`` > 0 where recorded) to finite
+    parameters."""
+    steps = (meta.get("stats") or {}).get("ilm", {}).get("steps")
+    if steps is not None and steps <= 0:
+        raise VrsError("the NeRF was never trained (0 steps): rebuild the map with --steps "
+                       ">= 1", p)
+    if not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(ilm.fields.params)):
+        raise VrsError("the NeRF parameters hold non-finite values (a diverged training "
+                       "run): rebuild the map with a lower lr_init", p)
 
 
 def read_stats(folder: str | Path) -> dict[str, Any]:

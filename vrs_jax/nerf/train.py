@@ -11,14 +11,17 @@ step into a temporary directory and renames it when complete, so a checkpoint is
 whole or absent (atomic); resume restores step, parameters, optimizer state and RNG key,
 which makes a resumed run bit-for-bit the continuation of the uninterrupted one (the step
 function is deterministic). A NaN/inf guard checks the loss and the updated parameters
-after every step and stops before anything non-finite is saved.
+on device every step; the host reads that flag with the loss and PSNR every ``log_every``
+steps and stops before anything non-finite, or collapsed (:func:`check_health`), is saved.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import dataclasses
 import functools
+import io
 import json
 import logging
 import math
@@ -28,7 +31,7 @@ import shutil
 import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -43,7 +46,7 @@ from tqdm.auto import tqdm
 
 from vrs_jax import fileio
 from vrs_jax.data.scene import Scene
-from vrs_jax.errors import VrsError
+from vrs_jax.errors import VrsError, sigterm_stops
 from vrs_jax.nerf import clusters as clusters_lib
 from vrs_jax.nerf import data as data_lib
 from vrs_jax.nerf import distributed as dist
@@ -420,6 +423,27 @@ def _quiet_orbax_logs() -> None:
             h.addFilter(_DROP_ORBAX)
 
 
+@contextlib.contextmanager
+def _captured_noise() -> Iterator[None]:
+    """Keep what orbax and tensorstore print while reading a damaged checkpoint (absl/orbax
+    log records, tracebacks of their callbacks into closed event loops) off the terminal:
+    the caller reports the failure as one line. Captured text goes to the DEBUG log."""
+    buf = io.StringIO()
+    handler = logging.StreamHandler(buf)
+    loggers = [logging.getLogger(n) for n in ("absl", "orbax", "asyncio")]
+    saved = [(lg.handlers, lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.handlers, lg.propagate = [handler], False
+    try:
+        with contextlib.redirect_stderr(buf):
+            yield
+    finally:
+        for lg, (handlers, propagate) in zip(loggers, saved, strict=True):
+            lg.handlers, lg.propagate = handlers, propagate
+        if buf.getvalue():
+            logging.getLogger("vrs_jax").debug("orbax while restoring:\n%s", buf.getvalue())
+
+
 def _preflight(directory: Path, tree: Any, step: int) -> None:
     """Refuse a save that cannot fit before orbax starts it (orbax's failure midway is noisy):
     free space on the device and the process's file size limit against the state's bytes."""
@@ -533,20 +557,29 @@ def restore_latest(mngr: ocp.CheckpointManager, template: TrainState,
     warn = warn or (lambda s: warnings.warn(s, stacklevel=3))
     steps = sorted(mngr.all_steps(), reverse=True)
     bad: list[int] = []
-    for s in steps:
-        try:
-            state, meta = restore_checkpoint(mngr, template, s)
-        except VrsError as e:
-            bad.append(s)
-            warn(f"warning: {e}; trying an earlier checkpoint")
-            continue
+    lines: list[str] = []
+    with _captured_noise():  # orbax's noise about the damaged ones stays off the terminal
+        for s in steps:
+            try:
+                state, meta = restore_checkpoint(mngr, template, s)
+                break
+            except VrsError as e:
+                bad.append(s)
+                lines.append(f"warning: {e}; trying an earlier checkpoint")
+        else:
+            state = None
         if bad:
-            warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
-                 f"damaged step(s) {', '.join(map(str, bad))})")
-        return state, meta, bad
-    raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or incompatible "
-                   "checkpoint data); move the folder away to train from scratch",
-                   Path(str(mngr.directory)))
+            time.sleep(0.5)  # tensorstore's late callbacks into orbax's closed loops
+    for line in lines:
+        warn(line)
+    if state is None:
+        raise VrsError(f"none of the {len(steps)} checkpoint(s) restores (corrupt or "
+                       "incompatible checkpoint data); move the folder away to train from "
+                       "scratch", Path(str(mngr.directory)))
+    if bad:
+        warn(f"warning: resumed from step {s}, the newest intact checkpoint (skipped "
+             f"damaged step(s) {', '.join(map(str, bad))})")
+    return state, meta, bad
 
 
 def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointManager:
@@ -568,6 +601,32 @@ def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointMa
 
 
 # ----------------------------------------------------------------------------- loop
+
+
+# A cluster whose training-batch PSNR falls this far below its best of the run (from the
+# first step on) has collapsed (an lr far too high: 3.9 dB against 19.4 on the synthetic room);
+# healthy runs stay within about 1 dB of their best.
+COLLAPSE_DB = 6.0
+
+
+def check_health(m: dict[str, np.ndarray], best_psnr: np.ndarray | None, step: int,
+                 last_good: int | None, out_dir: str | Path | None) -> np.ndarray:
+    """Raise TrainingDiverged when the host-read metrics ``m`` ([C] loss, psnr, finite) show
+    non-finite values or a PSNR collapse (:data:`COLLAPSE_DB` below ``best_psnr``, the best
+    so far); returns the updated best PSNR per cluster."""
+    psnr = np.asarray(m["psnr"], np.float64)
+    best = psnr if best_psnr is None else np.fmax(best_psnr, psnr)
+    finite = np.asarray(m["finite"]) & np.isfinite(psnr)
+    collapsed = finite & (psnr < best - COLLAPSE_DB)
+    if np.all(finite) and not np.any(collapsed):
+        return best
+    where = (f"last good checkpoint: step {last_good} in {Path(out_dir) / 'checkpoints'}"
+             if last_good is not None else "no checkpoint was saved yet")
+    c = int(np.flatnonzero(~finite | collapsed)[0])
+    what = (f"loss {float(m['loss'][c])}, parameters finite: no" if not finite[c] else
+            f"training PSNR collapsed to {psnr[c]:.1f} dB from {best[c]:.1f}")
+    raise TrainingDiverged(f"training diverged by step {step} (cluster {c}: {what}); stopped; "
+                           f"{where}; try a lower lr_init")
 
 
 @dataclasses.dataclass
@@ -657,6 +716,9 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     compile_s, t_loop, aside_s = 0.0, None, 0.0  # aside: evaluation + checkpoint time
     steps_after_compile = start_step
     held = math.nan
+    best_psnr = None
+    stop_on_sigterm = sigterm_stops()  # a kill is a clean stop: checkpoints stay whole
+    stop_on_sigterm.__enter__()
     try:
         s = start_step
         while s < target and (multi or time.perf_counter() < deadline):
@@ -664,6 +726,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             s += 1  # counted on the host: no device sync per step
             if t_loop is None:  # the first step includes compilation
                 jax.block_until_ready(state.step)
+                # the starting point of the PSNR collapse check (one host read per run)
+                best_psnr = (dist.gather(metrics) if multi else jax.device_get(metrics))["psnr"]
                 t_loop = time.perf_counter()
                 compile_s = t_loop - t_start
                 steps_after_compile = s
@@ -683,15 +747,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             t_aside = time.perf_counter()
             # the only host read: every log_every steps
             m = dist.gather(metrics) if multi else jax.device_get(metrics)
-            if not np.all(m["finite"]):
-                bad = int(np.flatnonzero(~m["finite"])[0])
-                where = (f"last good checkpoint: step {last_good} in "
-                         f"{Path(out_dir) / 'checkpoints'}" if last_good is not None
-                         else "no checkpoint was saved yet")
-                raise TrainingDiverged(
-                    f"training diverged by step {s} (cluster {bad}: loss "
-                    f"{float(m['loss'][bad])}, parameters finite: no); stopped; {where}; "
-                    f"try a lower lr_init")
+            best_psnr = check_health(m, best_psnr, s, last_good, out_dir)
             rec = {"step": s, "loss": float(np.mean(m["loss"])),
                    "psnr": float(np.mean(m["psnr"])), "time": time.perf_counter() - t_start}
             if eval_fn is not None and (s % cfg.eval_every == 0):
@@ -716,6 +772,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
         if mngr is not None and done != last_good and done > start_step:
             save_checkpoint(mngr, state, meta)
     finally:
+        stop_on_sigterm.__exit__(None, None, None)
         bar.close()
         if mngr is not None:
             try:
