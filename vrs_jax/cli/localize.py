@@ -193,9 +193,9 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     if args.report:
         from vrs_jax.eval.html import write_report
 
-        page = write_report(out / "report.html", m, queries, results, summary, cfg,
-                            info["errors"], progress=not args.quiet)
-        print(f"report: {page}")
+        write_report(out / "report.html", m, queries, results, summary, cfg, info["errors"],
+                     progress=not args.quiet)
+        print(f"report: {Path(args.out) / 'report.html'}")  # where it lands once complete
     record_run(out, args, cfg, {"total": time.perf_counter() - t_start,
                                 **{k: v for k, v in info["timing_s"].items() if v is not None}},
                argv)
