@@ -1,7 +1,8 @@
 """Figures (PNG, matplotlib Agg) for the README: rendering, matches, clusters, error curves.
 
     python -m benchmarks.figures [--out outputs/figures] [--scenes synthetic]
-        [--cluster-scenes synthetic,lego] [--figures render,matches,clusters,curves]
+        [--cluster-scenes synthetic,lego] [--figures render,matches,clusters,curves,timing]
+        [--localize-json outputs/benchmarks/localize.json]
 
 - ``render_vs_real_SCENE.png``: reference images rendered by their cluster's NeRF next to
   the real images and their absolute difference (PSNR in the titles); the views are the
@@ -10,23 +11,27 @@
   image it matched best, dimmed, with the NeRF-rendered patches of the inlier keypoints
   (--paste matched / all: of the matched / all keypoints) pasted at their keypoints (each
   warped to its canonical grid: position, scale, orientation, outlined in yellow); green
-  lines join the PnP inliers, red ones the other matches; below, pairs of query patch and
-  rendered patch for up to 12 inliers. Made by running localize's stages one by one
+  lines join the PnP inliers, red ones the other matches, cyan rings mark the query keypoints
+  that are inliers of the guided pass (the map points rendered from the first pose and
+  matched near their projections); below, pairs of query patch and rendered patch for up to
+  12 inliers. Made by running localize's stages one by one
   (retrieve, render_candidate, describe, match_candidates, lift, estimate_pose).
   ``matches_SCENE_real.png`` is the same for the baseline (real mode: the real reference
   patches, read from the reference image).
 - ``clusters_SCENE.png``: scene division of the reference cameras (top view: the two
   principal axes of the camera centres) into C clusters, a uniform grid vs K-means
   (vrs_jax.nerf.clusters, with the border images each K-means cluster shares ringed).
-- ``cumulative_errors.png``: fraction of queries under a translation / rotation error, for
-  render (VRS-NeRF) and real (baseline) mode on each scene of --scenes. Uses the run records of
-  ``benchmarks.localize`` when they match (same map, config, queries and code), else
-  localizes the queries first.
+- ``cumulative_errors.png``: per scene of a ``benchmarks.localize`` run (--localize-json),
+  the fraction of queries under a translation error (percent of the scene's scale) and a
+  rotation error, for render (VRS-NeRF), real (baseline) and the COLMAP SIFT reference.
+- ``timing.png``: from the same run, the median seconds of each stage per query, stacked,
+  per scene and method.
 
 Also writes OUT/figures.json (what each figure shows: PSNRs, inlier counts, cluster sizes).
 Defaults: the synthetic scene (its map built once into --work, shared with the other
-benchmarks) and clusters of synthetic and lego (camera poses only, no map needed): about a
-minute on 2 CPU cores after ``benchmarks.localize``, ~4 minutes without its records.
+benchmarks) and clusters of synthetic and lego (camera poses only, no map needed); curves
+and timing need ``benchmarks.localize``'s JSON first. About a minute on 2 CPU cores once
+the maps exist.
 """
 
 from __future__ import annotations
@@ -54,7 +59,7 @@ from vrs_jax.nerf import clusters as clusters_lib  # noqa: E402
 from vrs_jax.nerf import config as nerf_config  # noqa: E402
 from vrs_jax.nerf.render import psnr, render_view  # noqa: E402
 
-FIGURES = ("render", "matches", "clusters", "curves")
+FIGURES = ("render", "matches", "clusters", "curves", "timing")
 DPI = 120
 
 
@@ -77,10 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "matched ones when there are no inliers)")
     p.add_argument("--views", type=int, default=2,
                    help="reference images in the render figure (the query's top ones)")
-    p.add_argument("--max-cm", type=float, default=25.0, help="x range of the t-error curve")
-    p.add_argument("--max-deg", type=float, default=10.0, help="x range of the R-error curve")
-    p.add_argument("--fresh", action="store_true",
-                   help="re-localize for the curves (do not reuse recorded runs)")
+    p.add_argument("--localize-json", default=f"{common.DEFAULT_JSON_DIR}/localize.json",
+                   help="output of benchmarks.localize that the curves and timing figures draw")
+    p.add_argument("--max-pct", type=float, default=5.0,
+                   help="x range of the translation curves, percent of the scene scale")
+    p.add_argument("--max-deg", type=float, default=5.0, help="x range of the R-error curve")
     return p
 
 
@@ -111,7 +117,8 @@ def match_stages(ctx, q, cfg):
     """localize's stages (the one definition, jitted together): what the match figure draws.
 
     Returns dict(idx [k], gray [k, K_max, P, P] rendered patches (None in real mode),
-    j [k, Kq], ok [k, Kq] (distinct 2D-3D links fed to PnP), inliers [k, Kq], success, R, t).
+    j [k, Kq], ok [k, Kq] (distinct 2D-3D links fed to PnP), inliers [k, Kq], guided [Kq]
+    (inliers of the guided pass; None without one), success, R, t).
     """
     st = jax.device_get(jax.jit(run_stages, static_argnames=("cfg",))(ctx.m, q, cfg))
     k = len(st["idx"])
@@ -120,6 +127,7 @@ def match_stages(ctx, q, cfg):
             "gray": np.asarray(st["gray"]) if "gray" in st else None,
             "j": np.asarray(st["j"]), "ok": np.asarray(st["ok"]).reshape(k, -1),
             "inliers": np.asarray(st["inliers"]).reshape(k, -1),
+            "guided": np.asarray(st["guided_inliers"]) if "guided_inliers" in st else None,
             "success": bool(res.success), "R": np.asarray(res.R), "t": np.asarray(res.t)}
 
 
@@ -218,6 +226,11 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
         is_in = bool(st["inliers"][c][qi])
         ax.plot([a[0], b[0]], [a[1], b[1]], "-", color="lime" if is_in else "red",
                 lw=0.8 if is_in else 0.4, alpha=0.9 if is_in else 0.45)
+    n_guided = 0
+    if st["guided"] is not None and st["guided"].any():
+        g = kq[st["guided"], :2]
+        n_guided = len(g)
+        ax.scatter(g[:, 0], g[:, 1], s=36, facecolors="none", edgecolors="cyan", lw=0.8)
     ax.set_xlim(0, canvas.shape[1])
     ax.set_ylim(canvas.shape[0], 0)
     dt = dr = None
@@ -232,7 +245,8 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     ax.set_title(f"query {qs.names[query]} (left) vs {P}x{P} {what} patches of "
                  f"{egm.names[i]} (right, pasted on the dimmed real image)\n"
                  f"{int(st['ok'][c].sum())} matches, {int(n_inl[c])} PnP inliers (green) in "
-                 f"candidate {c + 1} of {len(st['idx'])}; {err}", fontsize=9)
+                 f"candidate {c + 1} of {len(st['idx'])}; guided pass: {n_guided} inliers "
+                 f"(cyan); {err}", fontsize=9)
     ax.axis("off")
     ax2 = fig.add_subplot(gs[1])
     if strip is not None:
@@ -246,7 +260,8 @@ def fig_matches(ctx, out_dir: Path, query: int, mode: str = "render", paste: str
     return path, {"mode": mode, "query": qs.names[query], "reference": egm.names[i],
                   "candidate": c, "patches_pasted": len(order),
                   "matches": int(st["ok"][c].sum()), "inliers": int(n_inl[c]),
-                  "inliers_all_candidates": int(n_inl.sum()), "success": st["success"],
+                  "inliers_all_candidates": int(n_inl.sum()), "guided_inliers": n_guided,
+                  "success": st["success"],
                   "t_err_cm": dt, "R_err_deg": dr, "retrieved": st["idx"].tolist(),
                   "patch_size": P}
 
@@ -388,40 +403,94 @@ def top_view_project(centers: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- curves
 
+METHODS = {"render": ("VRS-NeRF (rendered patches)", "-", "C0"),
+           "real": ("real patches (baseline)", "--", "C1"),
+           "sift": ("COLMAP SIFT reference", ":", "k")}
 
-def fig_curves(runs: dict[tuple[str, str], dict], out_dir: Path, max_cm: float,
-               max_deg: float) -> tuple[Path, dict]:
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
-    styles = {"render": "-", "real": "--"}
-    colors = {}
+
+def final_rows(doc: dict) -> dict[str, dict[str, dict]]:
+    """{scene: {mode: row}} of a ``benchmarks.localize`` JSON: the final pose of render,
+    real and sift (not the "pass 1" rows, not render-full)."""
+    out: dict[str, dict[str, dict]] = {}
+    for r in doc["rows"]:
+        if r["mode"] in METHODS:
+            out.setdefault(r["scene"], {})[r["mode"]] = r
+    return out
+
+
+def fig_curves(doc: dict, out_dir: Path, max_pct: float, max_deg: float
+               ) -> tuple[Path, dict]:
+    """Cumulative error curves per scene of a ``benchmarks.localize`` run: translation as a
+    percentage of the scene's scale (median camera distance to the centroid), and rotation;
+    render, real and the SIFT reference on the same queries."""
+    by_scene = final_rows(doc)
+    if not by_scene:
+        raise VrsError("the localize JSON has no render / real / sift rows")
+    n = len(by_scene)
+    fig, axes = plt.subplots(2, n, figsize=(3.6 * n + 0.6, 6.4), squeeze=False)
     info = {}
-    for (scene, mode), s in runs.items():
-        col = colors.setdefault(scene, f"C{len(colors)}")
-        pq = s["per_query"]
-        t_cm = np.asarray(pq["t_err_m"], np.float64) * 100.0
-        r_deg = np.asarray(pq["R_err_deg"], np.float64)
-        label = f"{scene} / {'VRS-NeRF (render)' if mode == 'render' else 'real patches'}"
-        for ax, e, mx in ((axes[0], t_cm, max_cm), (axes[1], r_deg, max_deg)):
-            x, y = metrics.cumulative_curve(e, max_error=mx)
-            ax.step(x, 100.0 * y, where="post", ls=styles[mode], color=col, label=label)
-        info[f"{scene}/{mode}"] = {"n_queries": len(t_cm),
-                                   "median_t_cm": s["median_t_cm"],
-                                   "median_R_deg": s["median_R_deg"],
-                                   "recall_5cm_5deg": (s["recall"] or {}).get("5cm_5deg"),
-                                   "record": s["record"]}
-    for ax, unit, thr in ((axes[0], "translation error (cm)", 5.0),
-                          (axes[1], "rotation error (deg)", 5.0)):
-        ax.axvline(thr, color="0.5", lw=0.8, ls=":")
-        ax.set_xlabel(unit)
-        ax.set_ylabel("queries with a smaller error (%)")
-        ax.set_ylim(0, 101)
-        ax.set_xlim(0, None)
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="lower right")
-    fig.suptitle("Cumulative localization error (failures count as infinite error)",
-                 fontsize=10)
-    path = save(fig, out_dir / "cumulative_errors.png")
-    return path, info
+    for col, (scene, rows) in enumerate(by_scene.items()):
+        for mode, r in rows.items():
+            label, ls, color = METHODS[mode]
+            scale = r.get("scene_scale") or 1.0
+            t_pct = 100.0 * np.asarray(common._inf(r["per_query"]["t_err_m"])) / scale
+            r_deg = np.asarray(common._inf(r["per_query"]["R_err_deg"], 180.0))
+            for ax, e, mx in ((axes[0, col], t_pct, max_pct), (axes[1, col], r_deg, max_deg)):
+                x, y = metrics.cumulative_curve(e, max_error=mx)
+                ax.step(x, 100.0 * y, where="post", ls=ls, color=color, label=label)
+            info[f"{scene}/{mode}"] = {"n_queries": len(t_pct),
+                                       "median_t_pct": float(np.median(t_pct)),
+                                       "median_R_deg": float(np.median(r_deg))}
+        axes[0, col].set_title(f"{scene} ({len(t_pct)} queries)", fontsize=10)
+        for ax, unit in ((axes[0, col], "translation error (% of scene scale)"),
+                         (axes[1, col], "rotation error (deg)")):
+            ax.axvline(1.0, color="0.6", lw=0.8, ls=":")
+            ax.set_xlabel(unit, fontsize=8)
+            ax.set_ylim(0, 101)
+            ax.set_xlim(0, None)
+            ax.grid(alpha=0.3)
+        axes[0, col].set_ylabel("queries with a smaller error (%)" if col == 0 else "")
+        axes[1, col].set_ylabel("queries with a smaller error (%)" if col == 0 else "")
+    axes[1, 0].legend(fontsize=8, loc="lower right")
+    fig.suptitle("Cumulative localization error on the same queries (a failure counts as an "
+                 "infinite error; dotted line: 1% / 1 deg)", fontsize=10)
+    fig.tight_layout()
+    return save(fig, out_dir / "cumulative_errors.png"), info
+
+
+def fig_timing(doc: dict, out_dir: Path) -> tuple[Path, dict]:
+    """Where a query's time goes: the median seconds of each stage (query preparation
+    first) per scene and method, stacked, from a ``benchmarks.localize`` run."""
+    by_scene = final_rows(doc)
+    bars = [(f"{scene} / {mode}", r["timing_s"]) for scene, rows in by_scene.items()
+            for mode, r in rows.items()]
+    stages: list[str] = []
+    for _, t in bars:
+        for k in ("query_preparation", *t):
+            if k not in stages and t.get(k) is not None:
+                stages.append(k)
+    fig, ax = plt.subplots(figsize=(10, 0.42 * len(bars) + 1.6))
+    colors = {k: f"C{i % 10}" for i, k in enumerate(stages)}
+    info = {}
+    for y, (label, t) in enumerate(bars):
+        left = 0.0
+        for k in stages:
+            v = t.get(k)
+            if v is None:
+                continue
+            ax.barh(y, v, left=left, color=colors[k], edgecolor="white", lw=0.5,
+                    label=k if y == next(i for i, (_, tt) in enumerate(bars)
+                                         if tt.get(k) is not None) else None)
+            left += v
+        ax.text(left, y, f" {left:.2f} s", va="center", fontsize=8)
+        info[label] = {"total_s": left, **{k: t.get(k) for k in stages}}
+    ax.set_yticks(range(len(bars)), [b[0] for b in bars], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("median seconds per query (each stage's median; compilation excluded)")
+    ax.legend(fontsize=7, ncol=4, loc="lower right")
+    ax.grid(axis="x", alpha=0.3)
+    ax.set_title("Where a query's time goes (2 CPU cores)", fontsize=10)
+    return save(fig, out_dir / "timing.png"), info
 
 
 # ----------------------------------------------------------------------------- main
@@ -455,11 +524,18 @@ def main(argv: list[str] | None = None) -> int:
                 centers = common._load_scene(common.SCENES[name], root).references().centers
             p, info[f"clusters_{name}"] = fig_clusters(name, centers, args.clusters, out)
             paths.append(p)
-    need_maps = [f for f in which if f != "clusters"]
+    if "curves" in which or "timing" in which:
+        loc = fileio.read_json(args.localize_json)  # VrsError naming the file if absent
+        if "curves" in which:
+            p, info["curves"] = fig_curves(loc, out, args.max_pct, args.max_deg)
+            paths.append(p)
+        if "timing" in which:
+            p, info["timing"] = fig_timing(loc, out)
+            paths.append(p)
+    need_maps = [f for f in which if f in ("render", "matches")]
     if need_maps:
         ctxs, skipped = common.prepare_scenes(args)
         info["skipped"] = skipped
-        runs = {}
         for ctx in ctxs:
             if "matches" in which or "render" in which:
                 modes = match_modes if "matches" in which else ["render"]
@@ -474,14 +550,6 @@ def main(argv: list[str] | None = None) -> int:
                     views = mi["retrieved"][:max(1, args.views)]
                     p, info[f"render_{ctx.name}"] = fig_render(ctx, out, views)
                     paths.append(p)
-            if "curves" in which:
-                for mode in ("render", "real"):
-                    runs[(ctx.name, mode)] = common.localize_run(
-                        ctx, common.localize_cfg(ctx, mode), args.work, fresh=args.fresh,
-                        progress=not args.quiet)
-        if runs:
-            p, info["curves"] = fig_curves(runs, out, args.max_cm, args.max_deg)
-            paths.append(p)
     doc.update({"figures": [str(p) for p in paths], "info": info})
     common.write_json(out / "figures.json", doc)
     for p in paths:

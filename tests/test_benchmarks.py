@@ -30,10 +30,15 @@ def loaded(tiny_map):
 
 
 @pytest.fixture(scope="module")
-def localize_doc(base, tmp_path_factory):
+def localize_json(base, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench_json") / "localize.json"
     assert localize.main(base + ["--scenes", "synthetic", "--json", str(out)]) == 0
-    return json.loads(out.read_text())
+    return out
+
+
+@pytest.fixture(scope="module")
+def localize_doc(localize_json):
+    return json.loads(localize_json.read_text())
 
 
 def _finite(*xs):
@@ -171,15 +176,23 @@ def test_render_benchmark_counts(base, loaded, tmp_path):
         assert r["nerf_evals_per_s"] == pytest.approx(r["rays_per_s"] * r["nerf_evals_per_ray"])
 
 
-def test_figures_written(base, localize_doc, tmp_path):
+def test_figures_written(base, localize_json, localize_doc, tmp_path):
     out = tmp_path / "fig"
     assert figures.main(base + ["--out", str(out), "--cluster-scenes", "synthetic",
-                                "--views", "1", "--match-modes", "render,real"]) == 0
+                                "--views", "1", "--match-modes", "render,real",
+                                "--localize-json", str(localize_json)]) == 0
     doc = json.loads((out / "figures.json").read_text())
     names = sorted(p.split("/")[-1] for p in doc["figures"])
     assert names == ["clusters_synthetic.png", "cumulative_errors.png",
                      "matches_synthetic.png", "matches_synthetic_real.png",
-                     "render_vs_real_synthetic.png"]
+                     "render_vs_real_synthetic.png", "timing.png"]
+    # the curves and the bars are the localize run's numbers
+    rows = {r["mode"]: r for r in localize_doc["rows"]}
+    for mode in ("render", "real", "sift"):
+        got = doc["info"]["curves"][f"synthetic/{mode}"]
+        assert got["n_queries"] == rows[mode]["n_queries"] == 2
+        assert doc["info"]["timing"][f"synthetic / {mode}"]["total_s"] == pytest.approx(
+            sum(v for v in rows[mode]["timing_s"].values() if v is not None))
     for p in doc["figures"]:
         img = cv2.imread(p)
         assert img is not None and img.shape[0] > 200 and img.shape[1] > 400
