@@ -58,8 +58,10 @@ def test_localize_query_list_and_run_records(tiny_map, small_synthetic_scene, tm
     assert s["recall"] is None and s["n_with_ground_truth"] == 0 and s["n_queries"] == 2
     assert [p["name"] for p in s["per_query"]] == names
     for p in s["per_query"]:
-        assert set(p) == {"name", "success", "fallback", "inliers", "matches", "error"}
+        assert set(p) == {"name", "success", "fallback", "inliers", "matches", "error",
+                          "inlier_coverage", "inlier_ray_angle_deg", "inlier_depth_spread"}
         assert p["success"] and p["error"] is None and p["inliers"] >= 10
+        assert 0 < p["inlier_coverage"] <= 1 and p["inlier_ray_angle_deg"] > 0
     rec = _record(out)
     assert rec["config"]["config"]["source"] == "real"
     assert rec["config"]["args"]["queries"] == str(qlist) and rec["argv"][-1] == "--no-timing"

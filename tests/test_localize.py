@@ -325,3 +325,73 @@ def test_missing_and_wrong_version_maps_give_one_line_errors(tiny_map, tmp_path,
     rc = cli.main(["--map", str(bad), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "format version 999" in err[0]
+
+
+def _geometry(points2d, mask, R, t, X, centers, inliers, grid=8):
+    from vrs_jax.localize.stages import inlier_geometry
+
+    out = jax.jit(inlier_geometry, static_argnums=2)(
+        jnp.asarray(points2d, jnp.float32), jnp.asarray(mask), grid, jnp.asarray(R, jnp.float32),
+        jnp.asarray(t, jnp.float32), jnp.asarray(X, jnp.float32),
+        jnp.asarray(centers, jnp.float32), jnp.asarray(inliers))
+    return [float(v) for v in out]
+
+
+def test_inlier_geometry_coverage_ray_angle_and_depth_spread():
+    """A synthetic pose at the origin looking down +z: inliers over the whole image cover
+    every cell, inliers in one corner one cell; the ray angle with a reference camera 1 unit
+    to the side of points at depth 4 is atan(1/4) wherever the points are; depths 2..4 give
+    a spread (p90 - p10) / p50 computed as numpy does; no inliers: NaN, padding ignored."""
+    rng = np.random.default_rng(0)
+    kq = 256
+    uv = np.stack(np.meshgrid(np.arange(16) * 40.0 + 20, np.arange(16) * 30.0 + 15), -1
+                  ).reshape(-1, 2)  # a 16 x 16 keypoint grid over 640 x 480
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    depth = rng.uniform(2.0, 4.0, kq)
+    X = geometry.unproject(K, uv) * depth[:, None]
+    R, t = np.eye(3), np.zeros(3)
+    # two candidates laid out as the matching stage does (correspondence i: keypoint i % Kq)
+    X2 = np.concatenate([X, X])
+    centers = np.concatenate([np.tile([1.0, 0, 0], (kq, 1)), np.tile([0.0, 1, 0], (kq, 1))])
+    mask = np.ones(kq, bool)
+    everywhere = np.r_[np.ones(kq, bool), np.zeros(kq, bool)]
+    cov, ang, spread = _geometry(uv, mask, R, t, X2, centers, everywhere)
+    assert cov == pytest.approx(1.0)
+    p10, p50, p90 = np.percentile(depth, [10, 50, 90])
+    assert spread == pytest.approx((p90 - p10) / p50, rel=1e-4)
+    corner = np.r_[np.zeros(kq, bool), (uv[:, 0] < 60) & (uv[:, 1] < 45)]  # 2 x 2 keypoints
+    cov, _, _ = _geometry(uv, mask, R, t, X2, centers, corner)
+    assert cov == pytest.approx(1 / 64)
+    # the corner's inliers come from the second candidate: keypoint i % Kq, centre (0, 1, 0)
+    flat = np.r_[np.zeros(kq, bool), np.ones(kq, bool)]
+    Xf = np.concatenate([X, geometry.unproject(K, uv) * 4.0 / geometry.unproject(K, uv)[:, 2:]])
+    _, ang, spread = _geometry(uv, mask, R, t, Xf, centers, flat)
+    a = Xf[kq:]
+    b = a - [0.0, 1.0, 0.0]
+    want = np.degrees(np.arccos(np.sum(a * b, 1) / np.linalg.norm(a, axis=1)
+                                / np.linalg.norm(b, axis=1)))
+    assert ang == pytest.approx(np.median(want), rel=1e-4)
+    assert spread == pytest.approx(0.0, abs=1e-5)  # every point at depth 4
+    # padding keypoints (mask False) do not count as cells to cover
+    half = mask & (uv[:, 0] < 320)
+    cov, _, _ = _geometry(uv, half, R, t, X2, centers,
+                          np.r_[half & (uv[:, 1] < 240), np.zeros(kq, bool)])
+    assert cov == pytest.approx(0.5)
+    assert all(np.isnan(_geometry(uv, mask, R, t, X2, centers, np.zeros(2 * kq, bool))))
+
+
+def test_results_carry_the_inlier_geometry(loaded):
+    """Both passes fill the geometry fields of a localized query (finite, coverage in
+    (0, 1]); the fields agree between the fused and the timed path."""
+    m, queries = loaded
+    for source, over in (("real", {}), ("render", {"guided_passes": 1})):
+        cfg = localize.get_config("test", source=source, **over)
+        q = _query(m, queries, 0, cfg)
+        r = localize.localize(m, q, cfg)
+        rt, _ = localize.localize_timed(m, q, cfg)
+        assert bool(r.success)
+        assert 0.0 < float(r.inlier_coverage) <= 1.0
+        assert 0.0 < float(r.inlier_ray_angle_deg) < 90.0
+        assert 0.0 < float(r.inlier_depth_spread) < 10.0
+        for f in ("inlier_coverage", "inlier_ray_angle_deg", "inlier_depth_spread"):
+            assert float(getattr(r, f)) == pytest.approx(float(getattr(rt, f)), rel=1e-4), f

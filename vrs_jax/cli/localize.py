@@ -203,14 +203,20 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
 
 
 def per_query(name: str, r, error: str | None) -> dict:
-    """A query's diagnostics for summary.json: success, fallback, inliers, matches and why it
-    has no PnP pose (``error``: None when localized)."""
+    """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
+    inliers' geometry (coverage of the query image, median ray angle with the map views,
+    relative depth spread; None without inliers) and why it has no PnP pose (``error``: None
+    when localized)."""
     if r is None:
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
-                "error": error or "no result"}
+                "inlier_coverage": None, "inlier_ray_angle_deg": None,
+                "inlier_depth_spread": None, "error": error or "no result"}
     ok = bool(r.success)
+    geo = {k: (float(v) if np.isfinite(v) else None) for k, v in (
+        ("inlier_coverage", r.inlier_coverage), ("inlier_ray_angle_deg", r.inlier_ray_angle_deg),
+        ("inlier_depth_spread", r.inlier_depth_spread))}
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
-            "inliers": int(r.n_inliers), "matches": int(r.n_matches),
+            "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
             "error": None if ok else "PnP failed (too few matches or inliers): the top-1 "
                                      "reference pose is written"}
 

@@ -83,6 +83,9 @@ class LocalizeConfig:
     render_stride: int = 1
     # Rays rendered per jitted chunk (bounds memory: chunk x samples x MLP width floats).
     render_chunk: int = 8192
+    # Cells per side of the grid over the query keypoints' bounding box on which
+    # LocalizeResult.inlier_coverage counts the cells holding inliers (a diagnostic only).
+    coverage_grid: int = 8
     pnp: PnPConfig = PnPConfig()
 
     def __post_init__(self):
@@ -104,6 +107,8 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.render_stride must be >= 1")
         if self.early_exit_inliers < 0:
             raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
+        if self.coverage_grid < 1:
+            raise VrsError("LocalizeConfig.coverage_grid must be >= 1")
         if self.query_keypoints < 1:
             raise VrsError("LocalizeConfig.query_keypoints must be >= 1")
         if self.source == "real" and self.patches is not None:

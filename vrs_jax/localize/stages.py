@@ -56,6 +56,19 @@ class LocalizeResult:
     n_inliers unless a guided pass improved them).
     n_rendered, n_rendered_first: [] int32 keypoint patches rendered in all passes and in the
     first (0 in real-patch mode; each patch is P^2 rays).
+
+    Geometry of the final inliers (:func:`inlier_geometry`; NaN without inliers), for a user
+    to judge a pose that ``success`` alone does not: a pose resting on inliers in one corner
+    of the image, or on points seen along nearly the same rays from the query and the map,
+    has a poorly constrained translation.
+    inlier_coverage: [] float32 fraction of the cells of a ``cfg.coverage_grid`` squared grid
+      over the query keypoints' bounding box that hold an inlier, among the cells that hold a
+      query keypoint (1: inliers wherever the query has features).
+    inlier_ray_angle_deg: [] float32 median angle (degrees) at the inliers' 3D points between
+      the ray from the estimated query centre and the ray from the reference camera whose
+      keypoint was matched (the triangulation angle of the query with the map view).
+    inlier_depth_spread: [] float32 (90th - 10th percentile) / median of the inliers' depths
+      in the estimated camera (0: all at one depth).
     """
 
     R: Array
@@ -70,6 +83,51 @@ class LocalizeResult:
     n_inliers_first: Array
     n_rendered: Array
     n_rendered_first: Array
+    inlier_coverage: Array
+    inlier_ray_angle_deg: Array
+    inlier_depth_spread: Array
+
+
+def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array, X: Array,
+                    ref_centers: Array, inliers: Array) -> tuple[Array, Array, Array]:
+    """(inlier_coverage, inlier_ray_angle_deg, inlier_depth_spread) [] float32 of a pose's
+    inliers (see :class:`LocalizeResult`; NaN without inliers), with fixed shapes and masks.
+
+    Args:
+      points2d: [Kq, 2] query keypoints; mask: [Kq] bool; grid: cells per side (static).
+      R, t: the pose; X: [M, 3] the correspondences' 3D points; ref_centers: [M, 3] the
+      centre of the reference camera whose keypoint each correspondence matched;
+      inliers: [M] bool. The 2D side of correspondence i is query keypoint ``i % Kq`` (both
+      passes lay their correspondences out so).
+    """
+    kq = points2d.shape[0]
+    big = jnp.float32(1e30)
+    lo = jnp.min(jnp.where(mask[:, None], points2d, big), axis=0)
+    hi = jnp.max(jnp.where(mask[:, None], points2d, -big), axis=0)
+    span = jnp.maximum(hi - lo, 1e-6)
+    cxy = jnp.clip(jnp.floor((points2d - lo) / span * grid), 0, grid - 1).astype(jnp.int32)
+    cell = cxy[:, 1] * grid + cxy[:, 0]  # [Kq]
+    has_kp = jnp.zeros(grid * grid, bool).at[cell].max(mask)
+    inl_q = jnp.zeros(kq, bool).at[jnp.arange(inliers.shape[0]) % kq].max(inliers)
+    has_inl = jnp.zeros(grid * grid, bool).at[cell].max(inl_q & mask)
+    any_inl = jnp.any(inliers)
+    coverage = jnp.where(any_inl, jnp.sum(has_inl & has_kp) / jnp.maximum(jnp.sum(has_kp), 1),
+                         jnp.nan)
+    a, b = X - (-R.T @ t), X - ref_centers
+    cos = jnp.sum(a * b, -1) / jnp.maximum(jnp.linalg.norm(a, axis=-1)
+                                           * jnp.linalg.norm(b, axis=-1), 1e-12)
+    ang = jnp.degrees(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
+    angle = jnp.nanmedian(jnp.where(inliers, ang, jnp.nan))
+    z = X @ R[2] + t[2]
+    p10, p50, p90 = jnp.nanpercentile(jnp.where(inliers, z, jnp.nan), jnp.array([10, 50, 90]))
+    spread = (p90 - p10) / jnp.where(jnp.abs(p50) > 0, jnp.abs(p50), jnp.nan)
+    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    return f32(coverage), f32(angle), f32(spread)
+
+
+def reference_centers(m: Map, ref: Array) -> Array:
+    """[..., 3] camera centres of reference images ``ref`` [...] int."""
+    return jnp.einsum("...ji,...j->...i", m.egm.R[ref], -m.egm.t[ref])
 
 
 def check(m: Map, cfg: LocalizeConfig) -> None:
@@ -198,11 +256,17 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     ok = pose.success
     R = jnp.where(ok, pose.R, m.egm.R[top])
     t = jnp.where(ok, pose.t, m.egm.t[top])
+    kq = q.points2d.shape[0]
+    ref = s["idx"][jnp.arange(s["X"].shape[0]) // kq]
+    cov, ang, spread = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, R, t, s["X"],
+                                       reference_centers(m, ref), pose.inliers)
     res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
                          R_first=R, t_first=t, n_inliers_first=pose.n_inliers,
                          n_rendered=s.get("n_rendered", jnp.int32(0)),
-                         n_rendered_first=s.get("n_rendered", jnp.int32(0)))
+                         n_rendered_first=s.get("n_rendered", jnp.int32(0)),
+                         inlier_coverage=cov, inlier_ray_angle_deg=ang,
+                         inlier_depth_spread=spread)
     return {"result": res, "inliers": pose.inliers}
 
 
@@ -262,10 +326,17 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
         pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, pnp)
         better = pose.success & (pose.n_inliers >= res.n_inliers)
         pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
+        k_max = m.egm.point_idx.shape[1]
+        geo = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, pose.R, pose.t, Xq,
+                              reference_centers(m, idx[j // k_max]), pose.inliers)
         return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
                            n_inliers=pick(pose.n_inliers, res.n_inliers),
                            n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
-                           n_rendered=res.n_rendered + n_new), pose.inliers & better
+                           n_rendered=res.n_rendered + n_new,
+                           inlier_coverage=pick(geo[0], res.inlier_coverage),
+                           inlier_ray_angle_deg=pick(geo[1], res.inlier_ray_angle_deg),
+                           inlier_depth_spread=pick(geo[2], res.inlier_depth_spread)
+                           ), pose.inliers & better
 
     none = jnp.zeros(q.mask.shape, bool)
     return jax.lax.cond(res.success, run, lambda _: (res, none), None)
