@@ -16,9 +16,10 @@ def test_demo_quick_runs_end_to_end_and_the_readme_example_after_it(tmp_path, ca
 
     monkeypatch.chdir(tmp_path)  # the demo's default --out, outputs/demo, below tmp_path
     assert demo.main(["--quick", "--quiet"]) == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
+    assert "[3/3] map outputs/demo/map" in captured.out + captured.err
     assert "VRS-NeRF (rendered" in out and "Baseline (real" in out
-    assert "[3/3] map outputs/demo/map" in out
     doc = json.loads((tmp_path / "outputs" / "demo" / "demo.json").read_text())
     rows = {r["mode"]: r for r in doc["rows"]}
     assert set(rows) == {"render", "real"}

@@ -879,3 +879,21 @@ def test_two_builds_of_one_dataset_give_identical_maps(tiny_map, small_synthetic
     a, b = (fileio.read_json(d / "map.json") for d in (tiny_map, out))
     assert {k: v for k, v in a.items() if k != "stats"} == {k: v for k, v in b.items()
                                                             if k != "stats"}
+
+
+def test_sigterm_waits_for_a_deferred_block_then_stops():
+    """A SIGTERM inside ``sigterm_deferred`` (a checkpoint being written) lets the block end,
+    then stops with Terminated; outside one it stops at once."""
+    from vrs_jax.errors import Terminated, sigterm_deferred, sigterm_stops
+
+    done = []
+    with sigterm_stops():
+        with pytest.raises(Terminated):
+            with sigterm_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)  # the handler runs: it only notes the signal
+                done.append("whole")
+        assert done == ["whole"]
+        with pytest.raises(Terminated):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import signal
 import sys
 import threading
@@ -60,6 +61,13 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
         except Terminated:
             print("terminated (SIGTERM); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
+            if not args and not kwargs:  # the program itself (main() reads sys.argv)
+                # the ``finally`` blocks have run (checkpoints closed); skip the interpreter's
+                # teardown, where tensorstore's callback threads print tracebacks of their
+                # closed event loop
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(128 + signal.SIGTERM)
             return 128 + signal.SIGTERM
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
@@ -73,19 +81,42 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM received: unwinds like Ctrl-C (``finally`` blocks close checkpoints)."""
 
 
+_DEFERRED = {"depth": 0, "pending": False}
+
+
+def _stop(signum, frame) -> None:
+    """SIGTERM handler: raise :class:`Terminated`, or note it while :func:`sigterm_deferred`
+    holds it back."""
+    if _DEFERRED["depth"]:
+        _DEFERRED["pending"] = True
+        return
+    raise Terminated
+
+
+@contextlib.contextmanager
+def sigterm_deferred() -> Iterator[None]:
+    """Within the block a SIGTERM waits for the block's end (a checkpoint is written whole,
+    not cut by the stop); :class:`Terminated` is raised then."""
+    _DEFERRED["depth"] += 1
+    try:
+        yield
+    finally:
+        _DEFERRED["depth"] -= 1
+    if not _DEFERRED["depth"] and _DEFERRED["pending"]:
+        _DEFERRED["pending"] = False
+        raise Terminated
+
+
 @contextlib.contextmanager
 def sigterm_stops() -> Iterator[None]:
     """Within the block SIGTERM raises :class:`Terminated` in the main thread: a clean stop
     instead of the native stack dump of the failure handler that XLA/tensorstore install
     when loaded (so code that loads them re-arms it: nerf.train's loop)."""
 
-    def stop(signum, frame):
-        raise Terminated
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.signal(signal.SIGTERM, stop)
+    old = signal.signal(signal.SIGTERM, _stop)
     try:
         yield
     finally:

@@ -46,7 +46,7 @@ from tqdm.auto import tqdm
 
 from vrs_jax import fileio
 from vrs_jax.data.scene import Scene
-from vrs_jax.errors import VrsError, sigterm_stops
+from vrs_jax.errors import VrsError, sigterm_deferred, sigterm_stops
 from vrs_jax.nerf import clusters as clusters_lib
 from vrs_jax.nerf import data as data_lib
 from vrs_jax.nerf import distributed as dist
@@ -503,9 +503,10 @@ def save_checkpoint(mngr: ocp.CheckpointManager, state: TrainState, meta: dict[s
     _preflight(directory, tree, step)
     _quiet_orbax_logs()
     try:
-        mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
-                                                meta=ocp.args.JsonSave(meta)), force=True)
-        mngr.wait_until_finished()
+        with sigterm_deferred():  # a stop waits for the whole checkpoint
+            mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree),
+                                                    meta=ocp.args.JsonSave(meta)), force=True)
+            mngr.wait_until_finished()
     except Exception as e:  # noqa: BLE001 - orbax/tensorstore wrap the OSError
         _FAILED["save"] = True
         _remove_partial(directory)
