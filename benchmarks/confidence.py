@@ -1,7 +1,7 @@
 """Calibration of the pose confidence (``vrs_jax.localize.confidence``) on labelled poses.
 
     python -m benchmarks.confidence [--work DIR] [--seeds 0 1 2] [--queries 16]
-        [--modes real render] [--json FILE]
+        [--modes real render] [--loose-min-inliers 6] [--json FILE]
 
 Generates small synthetic rooms (one per seed: 24 references and --queries queries at
 160x120), builds a ``test`` map of each in --work (reused when present) and localizes
@@ -11,7 +11,11 @@ pass. Labels: a query localized against its own room's map is right when its pos
 localized against ANOTHER room's map is wrong (a wrong-place retrieval). Prints, per mode
 and labelled set, how many wrong poses are flagged (uncertain or failed) and how many right
 ones are wrongly flagged, with the distribution of each test's quantity, and writes the
-per-result quantities to --json.
+per-result quantities to --json. The same runs are repeated with PnP accepting poses of
+--loose-min-inliers inliers (the config's floor is 12): most wrong poses are then PnP poses
+rather than failures, so they test the uncertain verdict's tests themselves. With the
+``--json`` written, the thresholds can be re-evaluated without localizing again
+(:func:`evaluate` on the stored rows is not needed: the rows hold every quantity).
 """
 
 from __future__ import annotations
@@ -50,6 +54,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--queries", type=int, default=16, help="queries per room")
     p.add_argument("--modes", nargs="+", default=["real", "render"], choices=["real", "render"])
+    p.add_argument("--loose-min-inliers", type=int, default=6,
+                   help="also localize with PnP accepting poses of this many inliers (0: no): "
+                        "the chance poses a permissive PnP would return, wrong ones the "
+                        "confidence must flag without the PnP inlier floor")
     p.add_argument("--json", default=None, help="per-result quantities and labels")
     return p
 
@@ -67,12 +75,17 @@ def room_map(work: Path, seed: int, n_query: int) -> tuple[Path, Path]:
     return scene_dir, map_dir
 
 
-def measure(work: Path, seeds: list[int], n_query: int, modes: list[str]) -> list[dict]:
-    """Per mode, map and query room: the results' fields, errors and labels."""
+def measure(work: Path, seeds: list[int], n_query: int, modes: list[str],
+            min_inliers: int | None = None) -> list[dict]:
+    """Per mode, map and query room: the results' fields, errors and labels (PnP with
+    ``min_inliers`` when given, else the config's)."""
     rooms = {s: room_map(work, s, n_query) for s in seeds}
     out = []
     for mode in modes:
         cfg = get_config("test", source=mode, guided_passes=1)
+        if min_inliers:
+            cfg = dataclasses.replace(cfg, pnp=dataclasses.replace(cfg.pnp,
+                                                                   min_inliers=min_inliers))
         for ms in seeds:
             m = maps.load_map(rooms[ms][1], descriptors=mode == "real")
             scale = map_scale(m)
@@ -81,7 +94,8 @@ def measure(work: Path, seeds: list[int], n_query: int, modes: list[str]) -> lis
                 results, _ = localize_scene(m, queries, cfg, progress=False, timed=False)
                 f = result_fields(results)
                 dt, dr = metrics.pose_errors(f["R"], f["t"], queries.R, queries.t)
-                out.append({"mode": mode, "map": ms, "queries": qs, "scale": scale,
+                out.append({"mode": mode + (f" pnp>={min_inliers}" if min_inliers else ""),
+                            "map": ms, "queries": qs, "scale": scale,
                             "fields": f, "t_err": dt, "R_err": dr})
     return out
 
@@ -150,6 +164,9 @@ def describe(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     runs = measure(Path(args.work), args.seeds, args.queries, args.modes)
+    if args.loose_min_inliers:
+        runs += measure(Path(args.work), args.seeds, args.queries, args.modes,
+                        args.loose_min_inliers)
     ev = evaluate(runs, ConfidenceConfig())
     for k, v in ev["table"].items():
         print(f"{k}: wrong flagged {v['wrong_flagged']}/{v['wrong']}, right wrongly flagged "
