@@ -11,11 +11,10 @@ pass. Labels: a query localized against its own room's map is right when its pos
 localized against ANOTHER room's map is wrong (a wrong-place retrieval). Prints, per mode
 and labelled set, how many wrong poses are flagged (uncertain or failed) and how many right
 ones are wrongly flagged, with the distribution of each test's quantity, and writes the
-per-result quantities to --json. The same runs are repeated with PnP accepting poses of
+per-result quantities to --json (--from-json re-evaluates changed thresholds on them
+without localizing). The same runs are repeated with PnP accepting poses of
 --loose-min-inliers inliers (the config's floor is 12): most wrong poses are then PnP poses
-rather than failures, so they test the uncertain verdict's tests themselves. With the
-``--json`` written, the thresholds can be re-evaluated without localizing again
-(:func:`evaluate` on the stored rows is not needed: the rows hold every quantity).
+rather than failures, so they test the uncertain verdict's tests themselves.
 """
 
 from __future__ import annotations
@@ -35,13 +34,17 @@ from vrs_jax.eval import metrics
 from vrs_jax.localize import get_config
 from vrs_jax.localize.batch import localize_scene
 from vrs_jax.localize.confidence import (
+    LOCALIZED_AT,
     ConfidenceConfig,
+    evidence_quantities,
     map_scale,
-    pass_disagreement,
     pose_confidence,
     result_fields,
+    score_quantities,
     weakest_test,
 )
+
+TESTS = ("inlier_ratio", "coverage", "pass_shift", "pass_rotation", "guided_ratio")
 
 ROOM = dict(width=160, height=120, n_reference=24)
 WRONG_T, WRONG_R = 0.05, 5.0  # wrong pose: beyond 5% of the scene scale or 5 deg
@@ -59,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "the chance poses a permissive PnP would return, wrong ones the "
                         "confidence must flag without the PnP inlier floor")
     p.add_argument("--json", default=None, help="per-result quantities and labels")
+    p.add_argument("--from-json", default=None, metavar="FILE",
+                   help="re-evaluate the current thresholds on a --json written before "
+                        "(no localization)")
     return p
 
 
@@ -101,14 +107,25 @@ def measure(work: Path, seeds: list[int], n_query: int, modes: list[str],
 
 
 def quantities(f: dict, scale: float) -> dict[str, np.ndarray]:
-    shift, rot = pass_disagreement(f)
-    first = np.maximum(f["n_inliers_first"], 1)
-    return {"inlier_ratio": f["n_inliers"] / np.maximum(f["n_matches"], 1),
-            "coverage": f["inlier_coverage"], "pass_shift": shift / scale,
-            "pass_rotation": rot,
-            "guided_ratio": np.where(f["n_inliers_guided"] >= 0,
-                                     f["n_inliers_guided"] / first, np.nan),
-            "n_inliers": f["n_inliers"].astype(float), "n_matches": f["n_matches"].astype(float)}
+    """The tests' quantities (localize.confidence.evidence_quantities) and the inlier counts."""
+    return {**evidence_quantities(f, scale), "n_inliers": f["n_inliers"].astype(float),
+            "n_matches": f["n_matches"].astype(float)}
+
+
+def reevaluate(rows: list[dict], cfg: ConfidenceConfig) -> dict:
+    """Flag counts per labelled set of stored rows (their quantities) under ``cfg``."""
+    table = {}
+    for r in rows:
+        failed = r["verdict"] == "failed"
+        if not failed:
+            sc = score_quantities({k: np.array([r[k]], float) for k in TESTS}, cfg)
+            flagged = min(float(v[0]) for v in sc.values()) < LOCALIZED_AT
+        key = f"{r['mode']} {'own' if r['map'] == r['queries'] else 'cross-room'}"
+        d = table.setdefault(key, {"right": 0, "right_flagged": 0, "wrong": 0,
+                                   "wrong_flagged": 0})
+        d[r["label"]] += 1
+        d[f"{r['label']}_flagged"] += int(failed or flagged)
+    return table
 
 
 def evaluate(runs: list[dict], cfg: ConfidenceConfig) -> dict:
@@ -163,6 +180,12 @@ def describe(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.from_json:
+        rows = json.loads(Path(args.from_json).read_text())["rows"]
+        for k, v in reevaluate(rows, ConfidenceConfig()).items():
+            print(f"{k}: wrong flagged {v['wrong_flagged']}/{v['wrong']}, right wrongly "
+                  f"flagged {v['right_flagged']}/{v['right']}")
+        return 0
     runs = measure(Path(args.work), args.seeds, args.queries, args.modes)
     if args.loose_min_inliers:
         runs += measure(Path(args.work), args.seeds, args.queries, args.modes,
