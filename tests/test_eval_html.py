@@ -4,6 +4,7 @@ real headless browser (Chromium from the system packages; skipped where none is 
 from __future__ import annotations
 
 import base64
+import json
 import re
 import shutil
 import subprocess
@@ -91,6 +92,11 @@ def test_localize_report_opens_in_chromium_with_every_image(tiny_map, tmp_path):
     n_queries = page.count("<section id=")
     assert n_queries == 8 and "vrs-jax localization report" in page
     assert "t error (cm)" in page and "rendered patch" in page
+    # the verdict column and each section show the pose confidence's verdict
+    summary = json.loads((out / "summary.json").read_text())
+    shown = summary["n_localized"] + summary["n_uncertain"]
+    assert shown >= 6 and page.count("(confidence ") == 2 * shown
+    assert page.count("localized (confidence ") == 2 * summary["n_localized"]
     # per query: the query image, its best reference, its patch pairs
     n_img, broken = browser_image_check(out)
     assert n_img == page.count("<img ") >= 2 * n_queries and broken == 0

@@ -45,6 +45,7 @@ from vrs_jax.eval.report import summarize
 from vrs_jax.eval.results import write_results
 from vrs_jax.features.patches import PATCH_SIZES
 from vrs_jax.localize.batch import localize_scene
+from vrs_jax.localize.confidence import LOCALIZED_AT, result_verdicts
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -168,6 +169,9 @@ def run(args, argv: list[str] | None = None) -> dict:
         print(metrics.format_table(summary, title=title))
     print(f"{summary['n_success']}/{summary['n_queries']} localized, {summary['n_fallback']} "
           f"fallback, {summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
+    print(f"verdicts: {summary['n_localized']} localized, {summary['n_uncertain']} uncertain, "
+          f"{summary['n_failed']} failed (confidence below {LOCALIZED_AT}: uncertain; no PnP "
+          "pose: failed)")
     return summary
 
 
@@ -187,14 +191,16 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     write_results(out / "results.txt", [queries.names[i] for i in ok], R, t,
                   basename=args.basename)
     summary = summarize(queries, results, info, m, cfg, Path(args.map))
-    summary["per_query"] = [per_query(n, r, info["errors"].get(n))
-                            for n, r in zip(queries.names, results, strict=True)]
+    conf, verdict = result_verdicts(m, results, cfg.confidence)
+    summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v))
+                            for n, r, c, v in zip(queries.names, results, conf, verdict,
+                                                  strict=True)]
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))
     if args.report:
         from vrs_jax.eval.html import write_report
 
         write_report(out / "report.html", m, queries, results, summary, cfg, info["errors"],
-                     progress=not args.quiet)
+                     progress=not args.quiet, confidence=(conf, verdict))
         print(f"report: {Path(args.out) / 'report.html'}")  # where it lands once complete
     record_run(out, args, cfg, {"total": time.perf_counter() - t_start,
                                 **{k: v for k, v in info["timing_s"].items() if v is not None}},
@@ -202,21 +208,25 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     return summary, f"{cfg.source} mode, {len(queries)} queries"
 
 
-def per_query(name: str, r, error: str | None) -> dict:
+def per_query(name: str, r, error: str | None, confidence: float = 0.0,
+              verdict: str = "failed") -> dict:
     """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
     inliers' geometry (coverage of the query image, median ray angle with the map views,
-    relative depth spread; None without inliers) and why it has no PnP pose (``error``: None
-    when localized)."""
+    relative depth spread; None without inliers), the pose ``confidence`` in [0, 1] and its
+    ``verdict`` (localized / uncertain / failed; localize.confidence) and why it has no PnP
+    pose (``error``: None when localized)."""
     if r is None:
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
                 "inlier_coverage": None, "inlier_ray_angle_deg": None,
-                "inlier_depth_spread": None, "error": error or "no result"}
+                "inlier_depth_spread": None, "confidence": 0.0, "verdict": "failed",
+                "error": error or "no result"}
     ok = bool(r.success)
     geo = {k: (float(v) if np.isfinite(v) else None) for k, v in (
         ("inlier_coverage", r.inlier_coverage), ("inlier_ray_angle_deg", r.inlier_ray_angle_deg),
         ("inlier_depth_spread", r.inlier_depth_spread))}
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
             "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
+            "confidence": round(confidence, 4), "verdict": verdict,
             "error": None if ok else "PnP failed (too few matches or inliers): the top-1 "
                                      "reference pose is written"}
 

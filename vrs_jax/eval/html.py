@@ -34,6 +34,7 @@ from vrs_jax.errors import VrsError
 from vrs_jax.eval import metrics
 from vrs_jax.features.patches import extract_patches
 from vrs_jax.localize import prepare_query, run_stages
+from vrs_jax.localize.confidence import result_verdicts
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map
@@ -153,10 +154,15 @@ def query_views(m: Map, gray: np.ndarray, K: np.ndarray, dist: np.ndarray,
             "render": "gray" in st}
 
 
-def _verdict(r: LocalizeResult | None, error: str | None) -> str:
+def _verdict(r: LocalizeResult | None, error: str | None, verdict: str = "",
+             confidence: float = 0.0) -> str:
+    """The verdict of the pose confidence with the confidence (localize.confidence), or why
+    there is no pose."""
     if r is None:
-        return f"unreadable: {error or 'no result'}"
-    return "localized" if bool(r.success) else "failed (top-1 reference pose written)"
+        return f"failed: unreadable: {error or 'no result'}"
+    if verdict == "failed" or not bool(r.success):
+        return "failed (top-1 reference pose written)"
+    return f"{verdict or 'localized'} (confidence {confidence:.2f})"
 
 
 def _errors(queries: Scene, results: Sequence[LocalizeResult | None]
@@ -174,7 +180,7 @@ def _errors(queries: Scene, results: Sequence[LocalizeResult | None]
 
 CSS = """body{font-family:sans-serif;margin:1.5em;max-width:1400px}
 table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
-td:first-child,th:first-child{text-align:left}.bad{color:#b00}.ok{color:#070}
+td:first-child,th:first-child{text-align:left}.bad{color:#b00}.ok{color:#070}.warn{color:#b60}
 section{border-top:1px solid #aaa;margin-top:1.5em}img{margin:4px}img.view{height:300px}
 figure{display:inline-block;margin:0 8px;vertical-align:top}
 figcaption{font-size:80%;color:#444;max-width:640px}"""
@@ -186,9 +192,10 @@ def _figure(uri: str, caption: str, cls: str = "view") -> str:
 
 
 def query_section(name: str, idx: int, queries: Scene, m: Map, r: LocalizeResult | None,
-                  error: str | None, views: dict | None, dt: float, dr: float) -> str:
+                  error: str | None, views: dict | None, dt: float, dr: float,
+                  verdict: str = "", confidence: float = 0.0) -> str:
     """The HTML of one query: its facts, its images and its patch pairs."""
-    facts = [_verdict(r, error)]
+    facts = [_verdict(r, error, verdict, confidence)]
     if r is not None:
         facts.append(f"{int(r.n_inliers)} inliers of {int(r.n_matches)} matches "
                      f"(first pass {int(r.n_inliers_first)})")
@@ -222,9 +229,14 @@ def query_section(name: str, idx: int, queries: Scene, m: Map, r: LocalizeResult
 
 def write_report(path: str | Path, m: Map, queries: Scene,
                  results: Sequence[LocalizeResult | None], summary: dict, cfg: LocalizeConfig,
-                 errors: dict[str, str] | None = None, progress: bool = True) -> Path:
-    """Write the run's HTML page (see the module docstring); returns its path."""
+                 errors: dict[str, str] | None = None, progress: bool = True,
+                 confidence: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+    """Write the run's HTML page (see the module docstring); returns its path.
+    ``confidence``: (confidence [N], verdict [N]) of the results (default: computed with
+    ``cfg.confidence``)."""
     errors = errors or {}
+    conf, verdict = (confidence if confidence is not None
+                     else result_verdicts(m, results, cfg.confidence))
     dt, dr = _errors(queries, results)
     rows, sections = [], []
     for i in tqdm(range(len(results)), desc="report", unit="query", disable=not progress):
@@ -234,19 +246,22 @@ def write_report(path: str | Path, m: Map, queries: Scene,
             gray = read_gray(queries.image_paths[i], background=queries.background,
                              size=tuple(int(v) for v in queries.sizes[i]))
             views = query_views(m, gray, queries.K[i], queries.dist[i], cfg)
-        cls = "ok" if r is not None and bool(r.success) else "bad"
+        cls = {"localized": "ok", "uncertain": "warn"}.get(str(verdict[i]), "bad")
+        shown = _verdict(r, errors.get(name), str(verdict[i]), float(conf[i]))
         err = f"{dt[i]:.2f}</td><td>{dr[i]:.3f}" if np.isfinite(dt[i]) else "-</td><td>-"
         rows.append(f'<tr><td><a href="#q{i}">{html.escape(name)}</a></td>'
-                    f'<td class="{cls}">{html.escape(_verdict(r, errors.get(name)))}</td>'
+                    f'<td class="{cls}">{html.escape(shown)}</td>'
                     f"<td>{int(r.n_inliers) if r is not None else 0}</td>"
                     f"<td>{int(r.n_matches) if r is not None else 0}</td><td>{err}</td></tr>")
         sections.append(query_section(name, i, queries, m, r, errors.get(name), views,
-                                      dt[i], dr[i]))
+                                      dt[i], dr[i], str(verdict[i]), float(conf[i])))
     head = (f"<p>dataset <code>{html.escape(str(m.source.root or ''))}</code> (map config "
             f"{m.config.name}, "
             f"{m.egm.num_images} reference images); mode <b>{cfg.source}</b>; "
             f"{summary['n_success']}/{len(results)} localized, {summary['n_fallback']} "
-            f"fallback, {summary['n_unreadable']} unreadable</p>")
+            f"fallback, {summary['n_unreadable']} unreadable; verdicts: "
+            f"{summary.get('n_localized', 0)} localized, {summary.get('n_uncertain', 0)} "
+            f"uncertain, {summary.get('n_failed', 0)} failed</p>")
     if summary.get("recall") is not None:
         head += "<pre>" + html.escape(metrics.format_table(summary, title="accuracy")) + "</pre>"
     doc = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>vrs-jax localization "

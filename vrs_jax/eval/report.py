@@ -9,6 +9,7 @@ import numpy as np
 
 from vrs_jax.data.scene import Scene
 from vrs_jax.eval import metrics
+from vrs_jax.localize.confidence import result_verdicts
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map, map_bytes
@@ -17,7 +18,9 @@ from vrs_jax.maps import Map, map_bytes
 def summarize(queries: Scene, results: list[LocalizeResult | None], info: dict, m: Map,
               cfg: LocalizeConfig, map_dir: str | Path) -> dict[str, Any]:
     """summary.json: metrics where ground truth exists (a query without a result counts as
-    failed), map bytes of the variant this mode loads, time per stage, work per query."""
+    failed), map bytes of the variant this mode loads, time per stage, work per query, and
+    how many results each verdict of the pose confidence has (``n_localized``,
+    ``n_uncertain``, ``n_failed``: no PnP pose or no result; localize.confidence)."""
     n = len(results)
     has = np.array([r is not None for r in results], bool)
     R = np.stack([np.asarray(r.R, np.float64) if r is not None else np.eye(3) for r in results]
@@ -49,7 +52,14 @@ def summarize(queries: Scene, results: list[LocalizeResult | None], info: dict, 
                 "n_success": info["n_success"],
                 "n_fallback": int(sum(bool(r.fallback) for r in done)),
                 "n_unreadable": int(n - len(done)),
+                **verdict_counts(result_verdicts(m, results, cfg.confidence)[1]),
                 "errors": info.get("errors", {}),
                 "median_inliers": float(np.median([int(r.n_inliers) for r in done]))
                 if done else 0.0})
     return out
+
+
+def verdict_counts(verdict) -> dict[str, int]:
+    """``n_localized``, ``n_uncertain``, ``n_failed`` of an array of verdicts."""
+    v = np.asarray(verdict, object)
+    return {f"n_{k}": int(np.sum(v == k)) for k in ("localized", "uncertain", "failed")}

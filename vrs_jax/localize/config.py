@@ -15,6 +15,7 @@ import dataclasses
 from vrs_jax import configio
 from vrs_jax.errors import VrsError
 from vrs_jax.features.patches import PatchConfig
+from vrs_jax.localize.confidence import ConfidenceConfig
 from vrs_jax.localize.pnp import PnPConfig
 
 # "render": describe NeRF-rendered patches of the reference keypoints (VRS-NeRF);
@@ -87,6 +88,10 @@ class LocalizeConfig:
     # LocalizeResult.inlier_coverage counts the cells holding inliers (a diagnostic only).
     coverage_grid: int = 8
     pnp: PnPConfig = PnPConfig()
+    # Thresholds of the confidence and verdict of each result (localized / uncertain /
+    # failed), computed after the jitted pipeline from its outputs (localize.confidence;
+    # measured there). No pose depends on them.
+    confidence: ConfidenceConfig = ConfidenceConfig()
 
     def __post_init__(self):
         src = ALIASES.get(self.source, self.source)

@@ -54,6 +54,10 @@ class LocalizeResult:
     correspondences fed to RANSAC. retrieved: [k] int32 reference indices, best first.
     R_first, t_first, n_inliers_first: the first pass's pose and inliers (equal to R, t,
     n_inliers unless a guided pass improved them).
+    n_inliers_guided: [] int32 inliers of the last guided pass's refined pose, whether or not
+      it was kept (a wrong first pose gathers few of them: the map rendered or projected there
+      does not match the query); -1 when no guided pass ran (none configured, or no first
+      pose).
     n_rendered, n_rendered_first: [] int32 keypoint patches rendered in all passes and in the
     first (0 in real-patch mode; each patch is P^2 rays).
 
@@ -81,6 +85,7 @@ class LocalizeResult:
     R_first: Array
     t_first: Array
     n_inliers_first: Array
+    n_inliers_guided: Array
     n_rendered: Array
     n_rendered_first: Array
     inlier_coverage: Array
@@ -263,6 +268,7 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
                          R_first=R, t_first=t, n_inliers_first=pose.n_inliers,
+                         n_inliers_guided=jnp.int32(-1),
                          n_rendered=s.get("n_rendered", jnp.int32(0)),
                          n_rendered_first=s.get("n_rendered", jnp.int32(0)),
                          inlier_coverage=cov, inlier_ray_angle_deg=ang,
@@ -331,6 +337,7 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
                               reference_centers(m, idx[j // k_max]), pose.inliers)
         return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
                            n_inliers=pick(pose.n_inliers, res.n_inliers),
+                           n_inliers_guided=pose.n_inliers.astype(jnp.int32),
                            n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
                            n_rendered=res.n_rendered + n_new,
                            inlier_coverage=pick(geo[0], res.inlier_coverage),

@@ -1,0 +1,222 @@
+"""A pose confidence a user can act on: per localization result a ``confidence`` in [0, 1]
+and a ``verdict``, "localized", "uncertain" or "failed".
+
+    fields = result_fields(results)                       # list of LocalizeResult | None
+    conf, verdict = pose_confidence(fields, map_scale(m), cfg.confidence)
+
+Pure numpy, batched over queries, after the jitted pipeline (nothing here changes a pose).
+
+- failed: no PnP pose (the fallback: the top-1 reference pose is written), or no result;
+- uncertain: a PnP pose whose evidence is weak by any of the :class:`ConfidenceConfig`
+  tests: few inliers among the matches, inliers on a small part of the query image, the
+  first and the final (guided) pass disagreeing by more than a fraction of the scene's
+  scale or a few degrees, or a guided pass that found far fewer inliers than the first
+  (the guided pass renders or projects the map at the estimated pose and re-matches near
+  the projections: a wrong pose finds little there);
+- localized: all tests pass.
+
+Each test maps its quantity to a score in [0, 1] that is 0.5 exactly at its threshold,
+linear on either side: for a fraction that should be large (inlier ratio, coverage, guided
+ratio; ``thr`` < 1) ``0.5 x / thr`` below the threshold and ``0.5 + 0.5 (x - thr) / (1 - thr)``
+above it (1 from x = 1 on); for a disagreement that should be small (``tol``)
+``1 - 0.5 d / tol`` up to the tolerance and ``0.5 tol / d`` beyond it. The confidence is
+the smallest score (0 when failed), so ``verdict == "localized"`` exactly when
+``confidence >= 0.5``, and the weakest test (:func:`weakest_test`) tells which evidence
+came closest to its threshold. The thresholds were measured (``python -m
+benchmarks.confidence``; see each field of :class:`ConfidenceConfig`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from vrs_jax.errors import VrsError
+
+VERDICTS = ("localized", "uncertain", "failed")
+LOCALIZED_AT = 0.5  # confidence at and above which the verdict is "localized"
+
+# The LocalizeResult fields the rule reads (numpy, [N] or [N, 3(, 3)]).
+FIELDS = ("success", "fallback", "n_inliers", "n_matches", "n_inliers_first",
+          "n_inliers_guided", "R", "t", "R_first", "t_first", "inlier_coverage")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfidenceConfig:
+    """Thresholds of :func:`pose_confidence` (each test's score is 0.5 at its threshold).
+
+    Measured by ``python -m benchmarks.confidence`` on three small synthetic rooms (seeds
+    0, 1, 2; 24 references, 16 queries each at 160x120, ``test`` maps), both modes with a
+    guided pass: positives are each map's own queries localized within 5% of the scene scale
+    and 5 deg; negatives are the other rooms' queries localized against each map (a
+    wrong-place retrieval: every pose is wrong) and own queries beyond those errors. All
+    runs are repeated with PnP accepting 6 inliers instead of 12, so that most wrong poses
+    are PnP poses the tests below must flag, not PnP failures. Flagged with these values:
+    every wrong pose but one (an own real-mode query at 5.06% of the scale, 0.8 deg, with
+    strong evidence), no right pose.
+    """
+
+    # Inliers / matches below this: uncertain. Right poses kept >= 0.84 of their matches
+    # (median 0.93, both modes); the wrong-place poses a permissive PnP returns (6 inliers)
+    # kept 0.15-0.74 except two (0.83, 1.0), which the coverage test flags.
+    min_inlier_ratio: float = 0.75
+    # LocalizeResult.inlier_coverage below this: uncertain (inliers bunched in a few of the
+    # cells holding query keypoints). Right poses covered >= 0.40 (median 0.58); wrong-place
+    # poses 0.03-0.36, and <= 0.22 among those passing the inlier ratio.
+    min_coverage: float = 0.3
+    # Camera-centre distance between the first pass's and the final pose, as a fraction of
+    # the scene scale (median camera distance to the cameras' centroid), above which the
+    # pose is uncertain. Right poses moved <= 0.082 (render mode: the guided pass rendered at
+    # the first pose corrects it; real mode <= 0.041); wrong-place poses up to 1.2.
+    max_pass_shift: float = 0.1
+    # Rotation between the two passes' poses (degrees) above which the pose is uncertain.
+    # Right poses turned <= 1.7 deg; wrong-place poses up to 7.7 deg.
+    max_pass_rotation_deg: float = 3.0
+    # Inliers of the last guided pass / first-pass inliers below this: uncertain (only when
+    # a guided pass ran). Right poses measured >= 1.02 (real) and >= 1.6 (render): at the
+    # right pose the guided pass finds at least the first pass's inliers; a pose that loses
+    # half of them there is not confirmed by the map seen from it. (On the rooms measured the
+    # wrong-place poses gained guided inliers too, from their few first ones: this test
+    # alone does not separate them; the inlier ratio and coverage do.)
+    min_guided_ratio: float = 0.5
+
+    def __post_init__(self):
+        for f in ("min_inlier_ratio", "min_coverage", "max_pass_shift",
+                  "max_pass_rotation_deg", "min_guided_ratio"):
+            if not getattr(self, f) > 0:
+                raise VrsError(f"ConfidenceConfig.{f} must be > 0, got {getattr(self, f)}")
+        for f in ("min_inlier_ratio", "min_coverage", "min_guided_ratio"):
+            if not getattr(self, f) < 1:
+                raise VrsError(f"ConfidenceConfig.{f} must be < 1, got {getattr(self, f)}")
+
+
+def map_scale(m) -> float:
+    """Scene scale of a map: median distance of its reference camera centres to their
+    centroid (:func:`vrs_jax.eval.metrics.scene_scale`), in the map's units."""
+    from vrs_jax.eval.metrics import scene_scale
+
+    R = np.asarray(m.egm.R, np.float64)
+    t = np.asarray(m.egm.t, np.float64)
+    return scene_scale(-np.einsum("nji,nj->ni", R, t))
+
+
+def result_fields(results: Sequence) -> dict[str, np.ndarray]:
+    """The :data:`FIELDS` of a list of LocalizeResult (numpy or device values) or None
+    (no result: counted as failed), stacked along a leading query axis; a result from before
+    ``n_inliers_guided`` existed reads -1 there (no guided pass)."""
+    n = len(results)
+    out = {"success": np.zeros(n, bool), "fallback": np.ones(n, bool),
+           "n_inliers": np.zeros(n, np.int64), "n_matches": np.zeros(n, np.int64),
+           "n_inliers_first": np.zeros(n, np.int64),
+           "n_inliers_guided": np.full(n, -1, np.int64),
+           "R": np.tile(np.eye(3), (n, 1, 1)), "t": np.zeros((n, 3)),
+           "R_first": np.tile(np.eye(3), (n, 1, 1)), "t_first": np.zeros((n, 3)),
+           "inlier_coverage": np.full(n, np.nan)}
+    for i, r in enumerate(results):
+        if r is None:
+            continue
+        for k in FIELDS:
+            v = getattr(r, k, None)
+            if v is not None:
+                out[k][i] = np.asarray(v)
+    return out
+
+
+def pass_disagreement(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(camera-centre distance [N], rotation angle [N] in degrees) between the first pass's
+    pose (R_first, t_first) and the final one (R, t)."""
+    R, t = np.asarray(fields["R"], np.float64), np.asarray(fields["t"], np.float64)
+    R1, t1 = np.asarray(fields["R_first"], np.float64), np.asarray(fields["t_first"], np.float64)
+    c = -np.einsum("nji,nj->ni", R, t)
+    c1 = -np.einsum("nji,nj->ni", R1, t1)
+    dR = np.einsum("nij,nkj->nik", R, R1)
+    cos = np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return np.linalg.norm(c - c1, axis=1), np.degrees(np.arccos(cos))
+
+
+def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[str, np.ndarray]:
+    """Each test's quantity [N]: inlier_ratio (inliers / matches), coverage, pass_shift (the
+    passes' camera-centre distance / ``scale``), pass_rotation (degrees), guided_ratio
+    (guided-pass inliers / first-pass inliers; NaN without a guided pass)."""
+    if not (np.isfinite(scale) and scale > 0):
+        raise VrsError(f"pose_confidence needs a positive scene scale, got {scale}")
+    n_inl = np.asarray(fields["n_inliers"], np.float64)
+    n_match = np.asarray(fields["n_matches"], np.float64)
+    n_first = np.asarray(fields["n_inliers_first"], np.float64)
+    n_guided = np.asarray(fields["n_inliers_guided"], np.float64)
+    shift, rot = pass_disagreement(fields)
+    return {"inlier_ratio": np.where(n_match > 0, n_inl / np.maximum(n_match, 1.0), 0.0),
+            "coverage": np.asarray(fields["inlier_coverage"], np.float64),
+            "pass_shift": shift / scale, "pass_rotation": rot,
+            "guided_ratio": np.where(n_guided >= 0, n_guided / np.maximum(n_first, 1.0),
+                                     np.nan)}
+
+
+def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
+                     ) -> dict[str, np.ndarray]:
+    """Each test's score [N] in [0, 1] from its quantity (:func:`evidence_quantities`): 0.5 at
+    its threshold; a NaN coverage (no inliers) scores 0, a NaN guided ratio (no guided
+    pass) 1."""
+    def high(x, thr):  # larger is better: 0 at 0, 0.5 at thr, 1 from 1 on
+        x = np.clip(x, 0.0, 1.0)
+        return np.where(x < thr, 0.5 * x / thr, 0.5 + 0.5 * (x - thr) / (1.0 - thr))
+
+    def low(d, tol):  # smaller is better: 1 at 0, 0.5 at tol, -> 0
+        d = np.maximum(d, 0.0)
+        return np.where(d <= tol, 1.0 - 0.5 * d / tol, 0.5 * tol / np.maximum(d, tol))
+
+    g = np.asarray(q["guided_ratio"], np.float64)
+    return {"inlier_ratio": high(np.asarray(q["inlier_ratio"], np.float64),
+                                 cfg.min_inlier_ratio),
+            "coverage": high(np.nan_to_num(np.asarray(q["coverage"], np.float64), nan=0.0),
+                             cfg.min_coverage),
+            "pass_shift": low(np.asarray(q["pass_shift"], np.float64), cfg.max_pass_shift),
+            "pass_rotation": low(np.asarray(q["pass_rotation"], np.float64),
+                                 cfg.max_pass_rotation_deg),
+            "guided_ratio": np.where(np.isnan(g), 1.0,
+                                     high(np.nan_to_num(g, nan=1.0), cfg.min_guided_ratio))}
+
+
+def confidence_scores(fields: Mapping[str, np.ndarray], scale: float,
+                      cfg: ConfidenceConfig) -> dict[str, np.ndarray]:
+    """Each test's score [N] in [0, 1] (0.5 at its threshold; 1 where it does not apply):
+    inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio."""
+    return score_quantities(evidence_quantities(fields, scale), cfg)
+
+
+def pose_confidence(fields: Mapping[str, np.ndarray], scale: float,
+                    cfg: ConfidenceConfig = ConfidenceConfig()
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(confidence [N] float64 in [0, 1], verdict [N] str) of N localization results.
+
+    Args:
+      fields: the :data:`FIELDS` as numpy arrays with a leading query axis
+        (:func:`result_fields` makes them from LocalizeResults).
+      scale: the scene scale (:func:`map_scale`), in the poses' units.
+      cfg: the thresholds.
+    """
+    scores = confidence_scores(fields, scale, cfg)
+    conf = np.min(np.stack(list(scores.values())), axis=0)
+    ok = np.asarray(fields["success"], bool) & ~np.asarray(fields["fallback"], bool)
+    conf = np.where(ok, np.clip(conf, 0.0, 1.0), 0.0)
+    verdict = np.where(~ok, "failed", np.where(conf >= LOCALIZED_AT, "localized", "uncertain"))
+    return conf, verdict.astype(object)
+
+
+def weakest_test(fields: Mapping[str, np.ndarray], scale: float,
+                 cfg: ConfidenceConfig = ConfidenceConfig()) -> np.ndarray:
+    """[N] name of each result's lowest-scoring test ("pnp" where it has no PnP pose)."""
+    scores = confidence_scores(fields, scale, cfg)
+    names = np.array(list(scores))
+    low = names[np.argmin(np.stack(list(scores.values())), axis=0)]
+    ok = np.asarray(fields["success"], bool) & ~np.asarray(fields["fallback"], bool)
+    return np.where(ok, low, "pnp").astype(object)
+
+
+def result_verdicts(m, results: Sequence, cfg: ConfidenceConfig = ConfidenceConfig()
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(confidence [N], verdict [N]) of a run's results (LocalizeResult or None: failed)
+    against map ``m`` (its scene scale)."""
+    return pose_confidence(result_fields(results), map_scale(m), cfg)
