@@ -470,7 +470,8 @@ def fig_timing(doc: dict, out_dir: Path) -> tuple[Path, dict]:
             if k not in stages and t.get(k) is not None:
                 stages.append(k)
     fig, ax = plt.subplots(figsize=(10, 0.42 * len(bars) + 1.6))
-    colors = {k: f"C{i % 10}" for i, k in enumerate(stages)}
+    cmap = plt.get_cmap("tab20")  # 20 distinct colours: every stage of every method its own
+    colors = {k: cmap(i % 20) for i, k in enumerate(stages)}
     info = {}
     for y, (label, t) in enumerate(bars):
         left = 0.0
