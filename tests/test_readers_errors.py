@@ -210,3 +210,40 @@ def test_depth_check_without_depth(tmp_path):
     s = load_scene("7scenes", root)
     with pytest.raises(VrsError, match="has no depth map"):
         depth_reprojection_errors(s, 0, 1)
+
+
+@pytest.mark.parametrize("fmt", ["llff", "nerf"])
+def test_an_unreadable_query_image_is_flagged_later_not_fatal_here(fmt, tmp_path):
+    """A query image that exists but is not an image (empty here) gives a scene: the reader
+    takes its size from the dataset (or the other images) and reading it at localization is
+    what flags it, so the other queries are localized; an unreadable map image still stops."""
+    from vrs_jax import geometry as g
+    from vrs_jax.data.images import read_gray
+
+    n, rng = 4, np.random.default_rng(0)
+    folder = tmp_path / ("images" if fmt == "llff" else "train")
+    folder.mkdir()
+    rows, frames = [], []
+    for k in range(n):
+        cv2.imwrite(str(folder / f"IMG_{k}.png"), np.full((30, 40, 3), 100, np.uint8))
+        R, c = g.axis_angle_to_rot(rng.normal(size=3)), rng.normal(size=3)
+        x, y, z = R
+        rows.append(np.concatenate([np.stack([y, x, -z, c, [30, 40, 35.0]], 1).ravel(),
+                                    [1.0, 10.0]]))
+        M = np.eye(4)
+        M[2, 3] = 4.0
+        frames.append({"file_path": f"./train/IMG_{k}", "transform_matrix": M.tolist()})
+    np.save(tmp_path / "poses_bounds.npy", np.stack(rows))
+    (tmp_path / "transforms_train.json").write_text(
+        json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    s = load_scene(fmt, tmp_path, query_every=2)
+    q = int(np.flatnonzero(s.is_query)[0])
+    s.image_paths[q].write_bytes(b"")
+    again = load_scene(fmt, tmp_path, query_every=2)
+    np.testing.assert_array_equal(again.sizes, s.sizes)
+    with pytest.raises(VrsError, match="IMG_"):
+        read_gray(again.image_paths[q])
+    ref = int(np.flatnonzero(~s.is_query)[0])
+    s.image_paths[ref].write_bytes(b"")
+    with pytest.raises(VrsError, match=s.image_paths[ref].name):
+        load_scene(fmt, tmp_path, query_every=2)

@@ -103,7 +103,7 @@ def load(root: str | Path, *, nvm: str | Path | None = None, images: str | Path 
             q_dist.append(e.dist)
             q_sizes.append((e.width, e.height))
     C.warn_list(f"Aachen queries whose image is missing under {img_dir}, skipped", missing)
-    actual = C.image_sizes(q_paths)
+    actual = C.image_sizes(q_paths, tolerate=[True] * len(q_paths), declared=q_sizes)
     q_K = [C.scale_to_size(K, s0, s, p)
            for K, s0, s, p in zip(q_K, q_sizes, actual, q_paths, strict=True)]
 

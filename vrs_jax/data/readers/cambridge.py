@@ -95,7 +95,10 @@ def load(root: str | Path, *, nvm: str | Path | None = None, nvm_size=NVM_SIZE,
     for p in paths:
         if not p.is_file():
             raise VrsError("image listed in the split file not found", p)
-    sizes = C.image_sizes(paths)
+    is_query = np.asarray([e[3] for e in kept])
+    if not test_f.is_file():
+        is_query = C.query_mask(names, query_every)
+    sizes = C.image_sizes(paths, tolerate=is_query)
     R = geometry.quat_to_rot(np.stack([e[1] for e in kept]))
     centres = np.stack([e[2] for e in kept])
     t = -(R @ centres[..., None])[..., 0]
@@ -147,8 +150,5 @@ def load(root: str | Path, *, nvm: str | Path | None = None, nvm_size=NVM_SIZE,
         if read_points:
             points3d = model.points
 
-    is_query = np.asarray([e[3] for e in kept])
-    if not test_f.is_file():
-        is_query = C.query_mask(names, query_every)
     return C.make_scene(root, names, paths, K, dist, sizes, R, t, np.ones(n, bool), is_query,
                         "cambridge", points3d=points3d)

@@ -196,14 +196,15 @@ def load(root: str | Path, *, model: str | Path | None = None, images: str | Pat
     if not names:
         raise VrsError(f"none of the model's {len(rec.images)} images found in {img_dir}",
                        model_dir)
-    sizes = C.image_sizes(paths)
+    is_query = C.query_mask(names, query_every)
+    sizes = C.image_sizes(paths, tolerate=is_query, declared=model_sizes)
     K = np.stack([C.scale_to_size(k, ms, s, p) for k, ms, s, p in zip(Ks, model_sizes, sizes,
                                                                        paths, strict=True)])
     # Sorted by point id so that text and binary models give the same order.
     pts = np.asarray([rec.points3D[k].xyz for k in sorted(rec.points3D)],
                      np.float64).reshape(-1, 3)
     return C.make_scene(root, names, paths, K, np.stack(dists), sizes, np.stack(Rs),
-                        np.stack(ts), posed, C.query_mask(names, query_every), "colmap",
+                        np.stack(ts), posed, is_query, "colmap",
                         points3d=pts)
 
 

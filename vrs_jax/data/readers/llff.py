@@ -74,7 +74,10 @@ def load(root: str | Path, *, factor: int | None = None, query_every: int = 0,
     for i in range(n):
         Rc2w[i] = C.rotation_from_matrix(Rc2w[i], pb_path)
     R, t = geometry.pose_inverse(Rc2w, centre)
-    sizes = C.image_sizes(paths)
+    names = [p.name for p in paths]
+    is_query = C.query_mask(names, query_every)
+    declared = np.round(hwf[:, [1, 0]] / factor).astype(int)  # (W, H) at the factor
+    sizes = C.image_sizes(paths, tolerate=is_query, declared=declared)
     K = np.zeros((n, 3, 3))
     for i, (w, h) in enumerate(sizes):
         H0, W0, f0 = hwf[i] / factor
@@ -91,7 +94,6 @@ def load(root: str | Path, *, factor: int | None = None, query_every: int = 0,
         sparse = root / "sparse" / "0"
         if sparse.is_dir():
             points = colmap_reader.read_points3d_xyz(sparse)
-    names = [p.name for p in paths]
     return C.make_scene(root, names, paths, K, None, sizes, R, t, np.ones(n, bool),
-                        C.query_mask(names, query_every), "llff", bounds=bounds,
+                        is_query, "llff", bounds=bounds,
                         points3d=points)

@@ -256,7 +256,10 @@ def load(root: str | Path, *, split: str | None = None,
                       "pixels of the images are used", stacklevel=2)
     if not names:
         raise VrsError("no frame with an existing image file", files[0][0])
-    sizes = C.image_sizes(paths)
+    is_query = np.asarray(is_query)
+    if not is_query.any():
+        is_query = C.query_mask(names, query_every)
+    sizes = C.image_sizes(paths, tolerate=is_query)
     K, dist, R, t = [], [], [], []
     for (meta, frame, M, jf, where), size in zip(frames, sizes, strict=True):
         Ki, di = _intrinsics(meta, frame, (int(size[0]), int(size[1])), jf, where)
@@ -267,9 +270,6 @@ def load(root: str | Path, *, split: str | None = None,
         dist.append(di)
         R.append(Ri)
         t.append(ti)
-    is_query = np.asarray(is_query)
-    if not is_query.any():
-        is_query = C.query_mask(names, query_every)
     n = len(names)
     return C.make_scene(root, names, paths, np.stack(K), np.stack(dist), sizes, np.stack(R),
                         np.stack(t), np.ones(n, bool), is_query, "nerf", background=bg)
