@@ -69,8 +69,11 @@ def relative(s: dict, scale: float) -> dict:
 
     dt = np.asarray(s["per_query"]["t_err_m"], np.float64)
     dr = np.asarray(s["per_query"]["R_err_deg"], np.float64)
+    rel = {k: (f * scale, r) for k, (f, r) in metrics.RELATIVE_THRESHOLDS.items()}
     return {"scene_scale": scale, "recall_relative": metrics.relative_recall(dt, dr, scale),
-            "median_t_rel": float(np.median(dt) / scale) if len(dt) else None}
+            "median_t_rel": float(np.median(dt) / scale) if len(dt) else None,
+            "recall_interval": metrics.recall_interval(dt, dr),
+            "recall_relative_interval": metrics.recall_interval(dt, dr, rel)}
 
 
 def sift_row(ctx: common.SceneCtx, args, scale: float) -> dict:
@@ -87,6 +90,7 @@ def sift_row(ctx: common.SceneCtx, args, scale: float) -> dict:
     results = sift.localize_sift(smap, ctx.queries, cfg, progress=not args.quiet)
     row = sift_reference.row_of(ctx.name, ctx.queries, results, smap, cfg, scale,
                                 time.perf_counter() - t0)
+    row.update(relative(row, scale))
     return row
 
 
@@ -111,19 +115,21 @@ def accuracy_table(rows: list[dict]) -> str:
     rel = lambda r, k: common.pct(r["recall_relative"][k])  # noqa: E731
     return common.table(
         ["scene / mode", "queries", "median (cm, deg)", "median (% scale)", "1cm/1deg",
-         "2cm/2deg", "5cm/5deg", "1%/1deg", "2%/2deg", "5%/5deg", "fail/fallback",
-         "inliers", "map (MB)"],
+         "2cm/2deg", "5cm/5deg", "1%/1deg", "2%/2deg", "5%/5deg", "1%/1deg 95% CI",
+         "fail/fallback", "inliers", "map (MB)"],
         [[f"{r['scene']} / {r['mode']}", r["n_queries"],
           f"{common.fmt(r['median_t_cm'])}, {common.fmt(r['median_R_deg'])}",
           common.fmt(None if r["median_t_rel"] is None else 100 * r["median_t_rel"]),
           *(common.pct(r["recall"][k] if r["recall"] else None)
             for k in ("1cm_1deg", "2cm_2deg", "5cm_5deg")),
           *(rel(r, k) for k in ("1pct_1deg", "2pct_2deg", "5pct_5deg")),
+          "{}-{}".format(*(common.pct(x) for x in r["recall_relative_interval"]["1pct_1deg"])),
           r["n_queries"] - r["n_success"], common.fmt(r["median_inliers"], 0),
           common.fmt(r["map_bytes"]["total"] / 1e6, 3)] for r in rows],
         title="Accuracy (render = VRS-NeRF, rendered patches; real = baseline, real patches; "
               "sift = COLMAP SIFT reference; % scale = of the median camera distance to the "
-              "cameras' centroid; inliers are distinct 2D-3D pairs)")
+              "cameras' centroid; CI: percentile bootstrap over the queries; inliers are "
+              "distinct 2D-3D pairs)")
 
 
 def latency_table(rows: list[dict]) -> str:

@@ -50,6 +50,12 @@ def test_localize_benchmark_json(localize_doc, loaded):
     assert ENV_KEYS <= set(doc) and doc["benchmark"] == "localize"
     assert doc["versions"]["jax"] and doc["machine"]["cpu_count"] >= 1
     assert [r["mode"] for r in doc["rows"]] == ["render", "real", "sift"]
+    for r in doc["rows"]:  # every recall with its bootstrap interval around it
+        for key, value in r["recall_relative"].items():
+            lo, hi = r["recall_relative_interval"][key]
+            assert lo <= value <= hi
+        lo, hi = r["recall_interval"]["5cm_5deg"]
+        assert lo <= r["recall"]["5cm_5deg"] <= hi
     egm = loaded.egm
     sift = doc["rows"][2]
     assert sift["n_queries"] == 2 and sift["map_bytes"]["total"] > 0

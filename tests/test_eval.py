@@ -367,3 +367,20 @@ def test_evaluate_cli_bad_inputs(tmp_path, capsys):
 def test_parse_opts_types():
     assert evaluate.parse_opts(["a=1", "b=2.5", "c=true", "d-e=x/y"]) == {
         "a": 1, "b": 2.5, "c": True, "d_e": "x/y"}
+
+
+def test_recall_interval_bootstrap():
+    """All recalled: [1, 1]; 2 of 4: an interval around 0.5 that a single query can move
+    (reaching 0.25 and 0.75), narrower for 2 of 4 repeated 25 times; deterministic."""
+    th = {"x": (0.05, 5.0)}
+    ok = np.full(4, 0.01)
+    assert metrics.recall_interval(ok, ok, th) == {"x": (1.0, 1.0)}
+    half = np.array([0.01, 0.01, 1.0, 1.0])
+    lo, hi = metrics.recall_interval(half, np.zeros(4), th)["x"]
+    assert lo <= 0.25 and hi >= 0.75
+    many = np.tile(half, 25)
+    lo2, hi2 = metrics.recall_interval(many, np.zeros(100), th)["x"]
+    assert lo < lo2 < 0.5 < hi2 < hi
+    assert metrics.recall_interval(half, np.zeros(4), th) == metrics.recall_interval(
+        half, np.zeros(4), th)
+    assert metrics.recall_interval(np.zeros(0), np.zeros(0), th) == {"x": (0.0, 0.0)}
