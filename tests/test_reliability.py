@@ -686,10 +686,10 @@ def test_output_folder_lock(tmp_path):
     assert len(warned) == 1 and str(dead.pid) in warned[0]
 
 
-@pytest.mark.parametrize("command", ["localize", "train"])
+@pytest.mark.parametrize("command", ["localize", "train", "train_nerf"])
 def test_second_run_into_a_locked_folder_is_refused(command, tmp_path, capsys, tiny_map,
                                                     small_synthetic_scene):
-    from vrs_jax.cli import localize, train
+    from vrs_jax.cli import localize, train, train_nerf
 
     out = tmp_path / "out"
     owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -699,7 +699,10 @@ def test_second_run_into_a_locked_folder_is_refused(command, tmp_path, capsys, t
                                              "--config", "test", "--quiet"]),
                 "train": (train.main, ["--format", "7scenes", "--root",
                                        str(small_synthetic_scene), "--out", str(out),
-                                       "--config", "test", "--quiet"])}
+                                       "--config", "test", "--quiet"]),
+                "train_nerf": (train_nerf.main, ["--format", "7scenes", "--root",
+                                                 str(small_synthetic_scene), "--out", str(out),
+                                                 "--config", "test", "--quiet"])}
         main, argv = args[command]
         line = assert_one_error_line(main(argv), capsys.readouterr().err, out)
         assert f"process {owner.pid}" in line

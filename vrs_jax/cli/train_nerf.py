@@ -19,6 +19,7 @@ orbax writes the checkpoints from all processes; process 0 writes the map, rende
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 from pathlib import Path
 
@@ -100,6 +101,18 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_run(args)
     multi = init_distributed(args)
+    from vrs_jax.nerf import distributed
+
+    # one run per output folder: process 0 holds the lock (the other processes of a
+    # multi-process run train into the same folder by design)
+    lock = (fileio.folder_lock(args.out) if distributed.is_primary()
+            else contextlib.nullcontext())
+    with lock:
+        return train_into(args, argv, multi)
+
+
+def train_into(args: argparse.Namespace, argv: list[str] | None, multi: bool) -> int:
+    """Train into ``args.out`` (checkpoints, ilm.npz, renders, metrics.json); 0 on success."""
     from vrs_jax.nerf import distributed, render
     from vrs_jax.nerf import ilm as ilm_lib
     from vrs_jax.nerf import train as T
