@@ -34,6 +34,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from vrs_jax.errors import VrsError
+from vrs_jax.geometry import camera_center, pose_errors
 
 VERDICTS = ("localized", "uncertain", "failed")
 LOCALIZED_AT = 0.5  # confidence at and above which the verdict is "localized"
@@ -97,9 +98,8 @@ def map_scale(m) -> float:
     centroid (:func:`vrs_jax.eval.metrics.scene_scale`), in the map's units."""
     from vrs_jax.eval.metrics import scene_scale
 
-    R = np.asarray(m.egm.R, np.float64)
-    t = np.asarray(m.egm.t, np.float64)
-    return scene_scale(-np.einsum("nji,nj->ni", R, t))
+    return scene_scale(camera_center(np.asarray(m.egm.R, np.float64),
+                                     np.asarray(m.egm.t, np.float64)))
 
 
 def result_fields(results: Sequence) -> dict[str, np.ndarray]:
@@ -127,13 +127,8 @@ def result_fields(results: Sequence) -> dict[str, np.ndarray]:
 def pass_disagreement(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(camera-centre distance [N], rotation angle [N] in degrees) between the first pass's
     pose (R_first, t_first) and the final one (R, t)."""
-    R, t = np.asarray(fields["R"], np.float64), np.asarray(fields["t"], np.float64)
-    R1, t1 = np.asarray(fields["R_first"], np.float64), np.asarray(fields["t_first"], np.float64)
-    c = -np.einsum("nji,nj->ni", R, t)
-    c1 = -np.einsum("nji,nj->ni", R1, t1)
-    dR = np.einsum("nij,nkj->nik", R, R1)
-    cos = np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return np.linalg.norm(c - c1, axis=1), np.degrees(np.arccos(cos))
+    f64 = lambda k: np.asarray(fields[k], np.float64)  # noqa: E731
+    return pose_errors(f64("R"), f64("t"), f64("R_first"), f64("t_first"))
 
 
 def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[str, np.ndarray]:

@@ -118,7 +118,7 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
     any_inl = jnp.any(inliers)
     coverage = jnp.where(any_inl, jnp.sum(has_inl & has_kp) / jnp.maximum(jnp.sum(has_kp), 1),
                          jnp.nan)
-    a, b = X - (-R.T @ t), X - ref_centers
+    a, b = X - geometry.camera_center(R, t), X - ref_centers
     cos = jnp.sum(a * b, -1) / jnp.maximum(jnp.linalg.norm(a, axis=-1)
                                            * jnp.linalg.norm(b, axis=-1), 1e-12)
     ang = jnp.degrees(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
@@ -132,7 +132,7 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
 
 def reference_centers(m: Map, ref: Array) -> Array:
     """[..., 3] camera centres of reference images ``ref`` [...] int."""
-    return jnp.einsum("...ji,...j->...i", m.egm.R[ref], -m.egm.t[ref])
+    return geometry.camera_center(m.egm.R[ref], m.egm.t[ref])
 
 
 def check(m: Map, cfg: LocalizeConfig) -> None:
