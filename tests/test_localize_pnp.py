@@ -150,7 +150,7 @@ def test_refining_the_optimum_again_keeps_it(seed):
     R2, t2, info = _refine(R1, t1, *f32(uv, X, inl, K64), cfg=CFG)
     assert float(info.cost) <= float(info.cost_seed)
     dt, dr = errors(R2, t2, np.asarray(R1, np.float64), np.asarray(t1, np.float64))
-    # Measured on two CPUs: 0.3-6.7 um and 1.6e-5 - 1.5e-4 deg for seeds 0-5, against a basin
+    # Measured (one machine): 0.3-6.7 um and 1.6e-5 - 1.5e-4 deg for seeds 0-5, against a basin
     # of ~1.5e-4 deg (2.6e-6 rad). A rotation inside the basin trades against a translation
     # of d * depth (the pixel motion of the one nearly cancels the other's), depth <= 3 m.
     # Three basins is still 1/50 of the Cramer-Rao spread (0.02 deg) of this geometry.
