@@ -403,3 +403,22 @@ def test_header_image_size_matches_decoding(tmp_path):
     for f in files:
         ref = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
         assert image_size(f) == (ref.shape[1], ref.shape[0]), f
+
+
+def test_query_range_holds_out_a_stretch_in_name_order():
+    """query_range A:B makes the A-th..(B-1)-th images by name queries, on top of query_every;
+    out-of-range or malformed ranges are one VrsError."""
+    from vrs_jax.errors import VrsError
+
+    root = shared_path(*LEGO)
+    base = load_scene("nerf", root, query_every=8)
+    s = load_scene("nerf", root, query_every=8, query_range="3:9")
+    order = np.argsort(np.asarray(s.names, dtype=object), kind="stable")
+    expect = base.is_query.copy()
+    expect[order[3:9]] = True
+    np.testing.assert_array_equal(s.is_query, expect)
+    for bad in ("9:3", "0:100000", "x:4", "5"):
+        with pytest.raises(VrsError, match="query_range"):
+            load_scene("nerf", root, query_range=bad)
+    with pytest.raises(VrsError, match="no reference"):
+        load_scene("nerf", root, query_range=f"0:{len(base)}")

@@ -16,7 +16,9 @@ colmap     ``colmap``              model folder, or project with ``sparse/0``
 ========== ======================= ==================================================
 
 Common options: ``query_every`` (hold out every N-th image by name as a query, for formats
-without a split) and ``downscale`` (images will be read at 1/downscale of their size: sizes
+without a split), ``query_range`` (``"A:B"``: the images at positions A..B-1 in name order are
+queries as well -- a whole stretch of a video held out of the map, as 7-Scenes' separate
+test sequences are) and ``downscale`` (images will be read at 1/downscale of their size: sizes
 and K are adjusted here; the consumer resizes with
 ``images.read_image(path, size=tuple(scene.sizes[i]))``; depth images keep their size and
 ``depth_K``).
@@ -73,10 +75,11 @@ def load_scene(fmt: str, root: str | Path, **opts) -> Scene:
     """
     known = options(fmt)
     downscale = opts.pop("downscale", None)
+    query_range = opts.pop("query_range", None)
     bad = sorted(set(opts) - set(known))
     if bad:
         raise VrsError(f"unknown option(s) {', '.join(bad)} for format {fmt!r} (known: "
-                       f"{', '.join(known + ('downscale',))})", root)
+                       f"{', '.join(known + ('downscale', 'query_range'))})", root)
     qe = opts.get("query_every", 0)
     if qe is not None and (not isinstance(qe, (int, np.integer)) or qe < 0):
         raise VrsError(f"query_every must be an integer >= 0, got {qe!r}", root)
@@ -85,7 +88,33 @@ def load_scene(fmt: str, root: str | Path, **opts) -> Scene:
         if not isinstance(downscale, (int, np.integer)) or downscale < 1:
             raise VrsError(f"downscale must be an integer >= 1, got {downscale!r}", root)
         scene = downscale_scene(scene, int(downscale))
+    if query_range is not None:
+        scene = hold_out_range(scene, query_range, root)
     return scene
 
 
-__all__ = ["FORMATS", "load_scene", "options", "downscale_scene"]
+def parse_range(text: str, n: int, where=None) -> tuple[int, int]:
+    """``"A:B"`` -> (A, B) with 0 <= A < B <= n (positions in name order); VrsError else."""
+    a, sep, b = str(text).partition(":")
+    try:
+        lo, hi = int(a), int(b)
+    except ValueError:
+        lo, hi = -1, -1
+    if not sep or not 0 <= lo < hi <= n:
+        raise VrsError(f"query_range must be A:B with 0 <= A < B <= {n} (the dataset's "
+                       f"images in name order), got {text!r}", where)
+    return lo, hi
+
+
+def hold_out_range(scene: Scene, text: str, where=None) -> Scene:
+    """The images at positions A..B-1 of the name order (``text`` = "A:B") become queries."""
+    lo, hi = parse_range(text, len(scene), where)
+    order = np.argsort(np.asarray(scene.names, dtype=object), kind="stable")
+    is_query = np.asarray(scene.is_query, bool).copy()
+    is_query[order[lo:hi]] = True
+    if not np.any(~is_query):
+        raise VrsError(f"query_range {text} leaves no reference image", where)
+    return dataclasses.replace(scene, is_query=is_query)
+
+
+__all__ = ["FORMATS", "load_scene", "options", "downscale_scene", "hold_out_range"]
