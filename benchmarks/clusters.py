@@ -366,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     scene, layout = make_scene(work, args.quiet)
     cfgs = map_configs(maps.get_config(args.config), args.clusters, args.steps, args.rays,
                        args.width, args.cluster_rays)
-    spec = common.SceneSpec(SCENE_CONFIG, "7scenes", (), None, args.steps,
+    spec = common.SceneSpec(SCENE_CONFIG, "7scenes", (), (), args.steps,
                             "synthetic rooms4: an 8 m hall and three 3.5 m offices in a row, "
                             f"{len(scene.references())} references + "
                             f"{len(scene.queries())} queries at 160x120")

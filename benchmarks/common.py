@@ -65,23 +65,46 @@ class SceneSpec:
     name: str
     fmt: str  # reader format (vrs_jax.data.readers)
     parts: tuple[str, ...]  # path under --data-root; () for the generated synthetic scene
-    query_every: int | None  # hold out every N-th image as a query (formats without a split)
+    # reader options (vrs_jax.data.readers.load_scene) as (key, value) pairs: the split
+    # (query_every: every N-th image a query; query_range: a stretch held out) and downscale
+    options: tuple[tuple[str, Any], ...]
     # NeRF training steps (cpu-small) when the suite builds the map: the synthetic room (the
-    # demo's scene) trains as the config says; the real scenes 3000 steps each (~5 min on 2
-    # cores) so that map building stays within ~25 minutes for all four.
+    # demo's scene) trains as the config says; the small real scenes 3000 steps each (~5 min
+    # on 2 cores) so that map building stays within ~25 minutes for the four of them.
     nerf_steps: int | None
     note: str
+    # NeRF config overrides of the scene's map (unbounded scenes: the scene contraction)
+    nerf: tuple[tuple[str, Any], ...] = ()
 
+    @property
+    def reader_options(self) -> dict[str, Any]:
+        return dict(self.options)
+
+
+# the phone walk's held-out leg: frames 141-190 walk out to the far end of the roof and back
+# (the map keeps the walk's earlier visits there, frames 41-80)
+WALK_LEG = "140:190"
 
 SCENES: dict[str, SceneSpec] = {
-    "synthetic": SceneSpec("synthetic", "7scenes", (), None, None,
+    "synthetic": SceneSpec("synthetic", "7scenes", (), (), None,
                            "embedded synthetic room, 60 references + 20 queries at 320x240"),
-    "fern": SceneSpec("fern", "llff", ("llff_fern", "data", "nerf_llff_data", "fern"), 5, 3000,
+    "fern": SceneSpec("fern", "llff", ("llff_fern", "data", "nerf_llff_data", "fern"),
+                      (("query_every", 5),), 3000,
                       "LLFF fern, 20 photos at 504x378, every 5th a query"),
-    "lego": SceneSpec("lego", "nerf", ("nerf_synthetic_lego_200",), 8, 3000,
-                      "NeRF synthetic lego, 100 views at 200x200, every 8th a query"),
-    "scan24": SceneSpec("scan24", "nerf", ("dtu_scan24",), 5, 3000,
+    "lego": SceneSpec("lego", "nerf", ("nerf_synthetic_lego_200",), (("query_every", 8),),
+                      3000, "NeRF synthetic lego, 100 views at 200x200, every 8th a query"),
+    "scan24": SceneSpec("scan24", "nerf", ("dtu_scan24",), (("query_every", 5),), 3000,
                         "DTU scan 24, 49 real photos at 384x384, every 5th a query"),
+    "fox": SceneSpec("fox", "nerf", ("instant_ngp_fox",),
+                     (("query_every", 5), ("downscale", 4)), 3000,
+                     "instant-ngp fox, 50 handheld photos at 270x480 (1/4), every 5th a "
+                     "query"),
+    "walk": SceneSpec("walk", "nerf", ("phone_walk",), (("query_every", 10),), 4000,
+                      "phone walk over a rooftop, 302 frames at 480x270, every 10th a query; "
+                      "unbounded: contracted NeRF", (("contraction", True),)),
+    "walk-leg": SceneSpec("walk-leg", "nerf", ("phone_walk",), (("query_range", WALK_LEG),),
+                          4000, f"phone walk, frames {WALK_LEG} (one out-and-back leg) held "
+                          "out as queries; contracted NeRF", (("contraction", True),)),
 }
 
 
@@ -150,11 +173,18 @@ class SceneCtx:
     m: Any  # vrs_jax.maps.Map
 
 
-def _load_scene(spec: SceneSpec, root: Path):
+def _load_scene(fmt: str, root: Path, opts: dict[str, Any]):
     from vrs_jax.data.readers import load_scene
 
-    opts = {"query_every": spec.query_every} if spec.query_every else {}
-    return load_scene(spec.fmt, root, **opts)
+    return load_scene(fmt, root, **opts)
+
+
+def _parse_option(text: Any) -> Any:
+    """A reader option as a map records it (text) -> its value (int where it is one)."""
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        return text
 
 
 def scene_root(name: str, args, log: Callable[[str], None] = print) -> Path | None:
@@ -197,18 +227,21 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneC
     if name in given:
         map_dir = given[name]
         src = maps.load_map(map_dir, require_ilm=False).source
-        scene = _load_scene(dataclasses.replace(spec, fmt=src.format or spec.fmt),
-                            Path(src.root))
+        # the map's own split (its recorded reader options), else the scene's
+        opts = ({k: _parse_option(v) for k, v in src.options} if src.format
+                else spec.reader_options)
+        scene = _load_scene(src.format or spec.fmt, Path(src.root), opts)
     else:
         root = scene_root(name, args, log)
         if root is None:
             return None
-        scene = _load_scene(spec, root)
+        opts = spec.reader_options
+        scene = _load_scene(spec.fmt, root, opts)
         steps = args.nerf_steps if args.nerf_steps is not None else spec.nerf_steps
-        cfg = maps.get_config(args.config, **({"max_steps": steps} if steps else {}))
+        nerf = {**dict(spec.nerf), **({"max_steps": steps} if steps else {})}
+        cfg = maps.get_config(args.config, **nerf)
         map_dir = Path(args.work) / f"{name}-{cfg.name}" / "map"
         log(f"[{name}] map {map_dir} (built if missing; NeRF {cfg.nerf.max_steps} steps)")
-        opts = {"query_every": spec.query_every} if spec.query_every else {}
         maps.build_map(scene, map_dir, cfg, progress=not args.quiet,
                        log=lambda s: log(f"[{name}] {s}"), source_options=opts)
     m = maps.load_map(map_dir)

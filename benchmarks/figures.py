@@ -522,7 +522,9 @@ def main(argv: list[str] | None = None) -> int:
                 root = common.scene_root(name, args)
                 if root is None:
                     continue
-                centers = common._load_scene(common.SCENES[name], root).references().centers
+                spec = common.SCENES[name]
+                centers = common._load_scene(spec.fmt, root,
+                                             spec.reader_options).references().centers
             p, info[f"clusters_{name}"] = fig_clusters(name, centers, args.clusters, out)
             paths.append(p)
     if "curves" in which or "timing" in which:

@@ -207,3 +207,60 @@ def test_blur_weights_widens_peaks():
     w = jnp.asarray([[0.0, 0.0, 1.0, 0.0, 0.0]])
     np.testing.assert_allclose(mipnerf.blur_weights(w, 0.0), [[0.0, 0.5, 1.0, 0.5, 0.0]])
     np.testing.assert_allclose(mipnerf.blur_weights(w, 0.01)[0, 0], 0.01)
+
+
+# ----------------------------------------------------------------------------- contraction
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.05, 50.0), st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1))
+def test_contraction_scale_is_the_cube_root_of_the_jacobian_determinant(r, a, b, c):
+    """contraction_scale(x)^3 equals |det J| of contract at x, J by autodiff; the map stays
+    inside the ball of radius 2 and is the identity inside the unit ball."""
+    v = np.array([a, b, c]) + 1e-3
+    x = jnp.asarray(r * v / np.linalg.norm(v), jnp.float32)
+    J = np.asarray(jax.jacfwd(mipnerf.contract)(x), np.float64)
+    s = float(mipnerf.contraction_scale(x))
+    np.testing.assert_allclose(s**3, abs(np.linalg.det(J)), rtol=2e-4, atol=1e-9)
+    y = np.asarray(mipnerf.contract(x))
+    assert np.linalg.norm(y) < 2.0 + 1e-6
+    if r <= 1.0:
+        np.testing.assert_allclose(y, np.asarray(x), rtol=1e-6)
+        assert s == 1.0
+    else:  # radial direction kept, radius 2 - 1/|x|
+        np.testing.assert_allclose(np.linalg.norm(y), 2 - 1 / r, rtol=1e-5)
+        np.testing.assert_allclose(y / np.linalg.norm(y), np.asarray(x) / r, atol=1e-5)
+
+
+def test_contraction_is_continuous_at_the_unit_sphere():
+    u = jnp.asarray(np.random.default_rng(0).normal(size=(50, 3)), jnp.float32)
+    u = u / jnp.linalg.norm(u, axis=-1, keepdims=True)
+    inside, outside = mipnerf.contract(u * (1 - 1e-4)), mipnerf.contract(u * (1 + 1e-4))
+    np.testing.assert_allclose(inside, outside, atol=3e-4)
+    np.testing.assert_allclose(mipnerf.contraction_scale(u * (1 + 1e-4)), 1.0, atol=1e-3)
+
+
+def test_piecewise_spacing_inverse_and_samples():
+    """g is inverted exactly; samples with a pivot lie in [near, far], sorted, evenly spaced
+    in g (linear in t below the pivot, in disparity beyond), stratified when randomized."""
+    p = jnp.float32(2.0)
+    t = jnp.asarray([0.1, 0.5, 1.9, 2.0, 2.5, 10.0, 1e4], jnp.float32)
+    # float32: g = 2 - p / t keeps ~ulp(2) / (p / t) relative precision in t (6e-4 at 1e4)
+    np.testing.assert_allclose(mipnerf.piecewise_spacing_inv(mipnerf.piecewise_spacing(t, p), p),
+                               t, rtol=1e-3)
+    near, far = jnp.full((4,), 0.5), jnp.full((4,), 400.0)
+    tv = mipnerf.stratified_t_vals(jax.random.key(0), near, far, 16, False, pivot=jnp.full(4, 2.0))
+    g = np.asarray(mipnerf.piecewise_spacing(tv, 2.0))
+    np.testing.assert_allclose(np.diff(g, axis=-1), np.diff(g, axis=-1)[:, :1] + 0 * g[:, 1:],
+                               rtol=1e-4)
+    np.testing.assert_allclose(tv[:, 0], 0.5, rtol=1e-6)
+    np.testing.assert_allclose(tv[:, -1], 400.0, rtol=1e-5)
+    below = np.asarray(tv[0]) < 2.0
+    assert 6 <= below.sum() <= 9  # about half the samples inside the pivot
+    tr = np.asarray(mipnerf.stratified_t_vals(jax.random.key(1), near, far, 16, True,
+                                              pivot=jnp.full(4, 2.0)))
+    assert np.all(np.diff(tr, axis=-1) >= 0) and tr.min() >= 0.5 and tr.max() <= 400.0 + 1e-3
+    gr = np.asarray(mipnerf.piecewise_spacing(jnp.asarray(tr), 2.0))
+    edges = np.linspace(g[0, 0], g[0, -1], 17)  # each jittered endpoint in its stratum
+    half = np.concatenate([[edges[0]], 0.5 * (edges[1:] + edges[:-1]), [edges[-1]]])
+    assert np.all(gr[:, 1:-1] >= half[1:-2] - 1e-5) and np.all(gr[:, 1:-1] <= half[2:-1] + 1e-5)

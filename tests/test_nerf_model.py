@@ -147,3 +147,38 @@ def test_config_overrides_and_errors():
     assert (paper.net_depth, paper.net_width, paper.skip_layer) == (8, 256, 4)
     assert (paper.num_samples_coarse, paper.num_samples_fine, paper.batch_size) == (128, 128,
                                                                                       1024)
+
+
+def test_contracted_field_reads_far_points_inside_its_cube():
+    """With contraction, the encoded positions of points from the inner ball to 1e4 ball
+    radii stay inside the cube, the inner ball is unchanged, and footprints shrink with the
+    contraction (hash-grid level weights rise towards the far field's coarser cells)."""
+    import dataclasses
+
+    cfg = dataclasses.replace(get_config("test"), contraction=True)
+    r = model.inner_radius(cfg.norm_radius)
+    x = jnp.asarray([[0.3, 0.0, 0.0], [r * 0.99, 0, 0], [r * 10, 0, 0], [0, 0, r * 1e4]],
+                    jnp.float32)
+    c, s = model.contract_gaussians(x, cfg.norm_radius)
+    np.testing.assert_allclose(c[:2], x[:2], rtol=1e-6)
+    assert float(jnp.max(jnp.abs(c))) <= cfg.norm_radius
+    np.testing.assert_allclose(np.linalg.norm(c[2]), r * (2 - 0.1), rtol=1e-5)
+    assert s[0] == 1.0 and 0 < s[3] < s[2] < 1.0
+    o, d, rr, n, f = _rays()
+    out = _render(_field(), o, d, rr, n, jnp.full_like(f, 1e3), jax.random.key(1), cfg, True)
+    assert np.all(np.isfinite(np.asarray(out["rgb"]))) and np.all(np.isfinite(out["depth"]))
+
+
+def test_contraction_spends_half_the_coarse_samples_inside_the_ball():
+    import dataclasses
+
+    cfg = dataclasses.replace(get_config("test"), contraction=True)
+    field = _field(scale=0.5)
+    o = jnp.zeros((4, 3), jnp.float32)
+    d = jnp.asarray(np.tile([0.0, 0.0, 1.0], (4, 1)), jnp.float32)
+    levels = model.render_levels(field, o, d, jnp.full(4, 1e-3), jnp.full(4, 0.1),
+                                 jnp.full(4, 1e4), jax.random.key(0), cfg, False)
+    t = np.asarray(levels[0]["t_vals"][0])
+    pivot = model.inner_radius(cfg.norm_radius) / 0.5  # world units: ball radius / scale
+    inside = np.mean(t < pivot)
+    assert 0.4 <= inside <= 0.6 and t[-1] > 100 * pivot

@@ -117,6 +117,9 @@ def from_dict(cls: type, d: Any, where: str | Path | None = None, path: str = ""
     if not isinstance(d, dict):
         raise VrsError(f"config {name} is not an object", where)
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    # fields added after files were written: such a file meant the value given here
+    added = getattr(cls, "ADDED_FIELDS", {})
+    d = {**{k: v for k, v in added.items() if k not in d}, **d}
     unknown = sorted(set(d) - set(fields))
     missing = sorted(set(fields) - set(d))
     if unknown:

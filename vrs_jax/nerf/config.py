@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 from vrs_jax import configio
 from vrs_jax.errors import VrsError
@@ -89,6 +89,16 @@ class NerfConfig:
 
     # --- scene preparation
     norm_radius: float = math.pi  # sampled region mapped into [-norm_radius, norm_radius]^3
+    # Scene contraction for unbounded scenes (mip-NeRF 360, section 2): each cluster's inner
+    # ball (its cameras plus the median depth of what they see, nerf/data.inner_ball) keeps
+    # its resolution, and space beyond it is contracted, x -> (2 - 1/|x|) x/|x| in units of
+    # the ball's radius, so the far field to infinity fits in a ball of twice the radius,
+    # with a resolution that falls with distance as a pixel's footprint grows; the frustum
+    # Gaussians are pushed through the contraction (isotropic Jacobian, as Zip-NeRF does) and
+    # the ray samples are spaced linearly inside the ball and in disparity beyond it
+    # (mipnerf.stratified_t_vals' pivot). False: the bounding box of every camera's sampled
+    # region, near to far, is mapped into the cube (bounded and object-centric scenes).
+    contraction: bool = False
     near_far_percentiles: tuple[float, float] = (1.0, 99.0)  # of the depth prior's samples
     near_far_margin: float = 0.2  # near *= 1 - m, far *= 1 + m around those percentiles
     n_clusters: int = 1  # K-means clusters of reference cameras (Aachen: 16 in the paper)
@@ -113,6 +123,10 @@ class NerfConfig:
     checkpoint_every: int = 1000  # steps between orbax checkpoints
     keep_checkpoints: int = 2
     seed: int = 0
+
+    # Fields added since maps were first written, with the value an earlier map meant
+    # (configio.from_dict completes a file that lacks them).
+    ADDED_FIELDS: ClassVar[dict[str, Any]] = {"contraction": False}
 
     @property
     def num_levels(self) -> int:

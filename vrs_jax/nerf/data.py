@@ -162,6 +162,39 @@ def normalization(points: np.ndarray, radius: float = math.pi) -> tuple[np.ndarr
     return center.astype(np.float32), float(radius / half)
 
 
+def inner_ball(cam_centers: np.ndarray, depths: np.ndarray) -> tuple[np.ndarray, float]:
+    """The ball a contracted field keeps at full resolution: centre and radius (world).
+
+    Centred on the cameras' centroid, it holds every camera plus the median depth of what
+    they see (so near content keeps the finest grid cells and what lies beyond is
+    contracted). cam_centers: [N, 3]; depths: [M] typical z-depths of the images' content
+    (e.g. the median EGM point depth per image) -> (centre [3] float32, radius).
+    """
+    c = np.asarray(cam_centers, np.float64)
+    d = np.asarray(depths, np.float64)
+    d = d[np.isfinite(d) & (d > 0)]
+    center = c.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(c - center, axis=1))) + (
+        float(np.median(d)) if len(d) else 0.0)
+    if not np.isfinite(radius) or radius <= 0:
+        raise VrsError("degenerate scene extent: cannot place the contraction's inner ball")
+    return center.astype(np.float32), radius
+
+
+def typical_depths(near: np.ndarray, far: np.ndarray,
+                   depths: list[np.ndarray] | None = None) -> np.ndarray:
+    """Per image one typical content depth [N]: the median of its depth samples when
+    given (EGM point depths), else the geometric mean of its near and far bounds."""
+    out = np.sqrt(np.asarray(near, np.float64) * np.asarray(far, np.float64))
+    if depths is not None:
+        for i, d in enumerate(depths):
+            d = np.asarray(d, np.float64)
+            d = d[np.isfinite(d) & (d > 0)]
+            if len(d):
+                out[i] = np.median(d)
+    return out
+
+
 # ----------------------------------------------------------------------------- rays
 
 

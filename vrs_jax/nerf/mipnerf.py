@@ -95,8 +95,24 @@ def cast_rays(t_vals: Array, origins: Array, directions: Array, radii: Array
 # ----------------------------------------------------------------------------- sampling
 
 
+def piecewise_spacing(t: Array, pivot: Array) -> Array:
+    """Linear-then-disparity spacing g(t): t / p below the pivot p, 2 - p / t beyond it.
+
+    Continuous with a continuous slope at p, monotone, and g -> 2 as t -> inf: samples even
+    in g are even in distance up to p and even in disparity beyond (the 1D form of the scene
+    contraction). t, pivot: [...] (> 0) -> [...].
+    """
+    return jnp.where(t < pivot, t / pivot, 2.0 - pivot / jnp.maximum(t, 1e-10))
+
+
+def piecewise_spacing_inv(g: Array, pivot: Array) -> Array:
+    """Inverse of :func:`piecewise_spacing` for g in [0, 2): [...] -> t [...]."""
+    return jnp.where(g < 1.0, g * pivot, pivot / jnp.maximum(2.0 - g, 1e-10))
+
+
 def stratified_t_vals(key: Array, near: Array, far: Array, num_samples: int,
-                      randomized: bool, lindisp: bool = False) -> Array:
+                      randomized: bool, lindisp: bool = False,
+                      pivot: Array | None = None) -> Array:
     """Interval endpoints in [near, far], one random point per stratum when randomized.
 
     Args:
@@ -106,11 +122,25 @@ def stratified_t_vals(key: Array, near: Array, far: Array, num_samples: int,
       randomized: jitter each endpoint uniformly inside its stratum (training);
         otherwise evenly spaced endpoints (evaluation).
       lindisp: space the endpoints evenly in disparity 1/t instead of in t.
+      pivot: [...] or None: space the endpoints evenly in :func:`piecewise_spacing` with
+        this pivot (linear up to it, disparity beyond; the contracted scene's sampling);
+        wins over lindisp.
     Returns:
       t_vals [..., S + 1], sorted, t_vals[..., 0] >= near, t_vals[..., -1] <= far.
     """
     s = jnp.linspace(0.0, 1.0, num_samples + 1, dtype=near.dtype)
     near_, far_ = near[..., None], far[..., None]
+    if pivot is not None:
+        p = jnp.broadcast_to(pivot, near.shape)[..., None]
+        g0, g1 = piecewise_spacing(near_, p), piecewise_spacing(far_, p)
+        g = g0 * (1.0 - s) + g1 * s
+        if randomized:  # one uniform point per stratum of g, ends kept
+            mids = 0.5 * (g[..., 1:] + g[..., :-1])
+            upper = jnp.concatenate([mids, g[..., -1:]], axis=-1)
+            lower = jnp.concatenate([g[..., :1], mids], axis=-1)
+            g = lower + (upper - lower) * jax.random.uniform(key, g.shape, dtype=g.dtype)
+        t_vals = piecewise_spacing_inv(g, p)
+        return jnp.clip(jax.lax.cummax(t_vals, axis=t_vals.ndim - 1), near_, far_)
     if lindisp:
         t_vals = 1.0 / (1.0 / near_ * (1.0 - s) + 1.0 / far_ * s)
     else:
@@ -126,15 +156,17 @@ def stratified_t_vals(key: Array, near: Array, far: Array, num_samples: int,
 
 def sample_along_rays(key: Array, origins: Array, directions: Array, radii: Array,
                       near: Array, far: Array, num_samples: int, randomized: bool,
-                      lindisp: bool = False) -> tuple[Array, tuple[Array, Array]]:
+                      lindisp: bool = False, pivot: Array | None = None
+                      ) -> tuple[Array, tuple[Array, Array]]:
     """Stratified samples along cone rays.
 
     Args:
-      origins, directions: [..., 3]; radii, near, far: [...].
+      origins, directions: [..., 3]; radii, near, far: [...]; pivot: see
+        :func:`stratified_t_vals`.
     Returns:
       t_vals [..., S + 1] and the frustum Gaussians (means [..., S, 3], cov_diag [..., S, 3]).
     """
-    t_vals = stratified_t_vals(key, near, far, num_samples, randomized, lindisp)
+    t_vals = stratified_t_vals(key, near, far, num_samples, randomized, lindisp, pivot)
     return t_vals, cast_rays(t_vals, origins, directions, radii)
 
 
@@ -222,6 +254,32 @@ def resample_along_rays(key: Array, origins: Array, directions: Array, radii: Ar
     new_t = sorted_piecewise_constant_pdf(key, t_vals, w, num_samples + 1, randomized)
     new_t = jax.lax.stop_gradient(new_t)
     return new_t, cast_rays(new_t, origins, directions, radii)
+
+
+# ----------------------------------------------------------------------------- contraction
+
+
+def contract(x: Array) -> Array:
+    """mip-NeRF 360's scene contraction: x inside the unit ball, (2 - 1/|x|) x / |x| beyond.
+
+    Maps all of space into the ball of radius 2 (continuous, with a continuous Jacobian at
+    |x| = 1). x: [..., 3] -> [..., 3].
+    """
+    n = jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), 1e-20))
+    return jnp.where(n <= 1.0, x, (2.0 - 1.0 / n) * x / n)
+
+
+def contraction_scale(x: Array) -> Array:
+    """Isotropic length scale of the contraction's Jacobian at x: det(J)^(1/3).
+
+    Beyond the unit ball J has the radial eigenvalue 1/|x|^2 and twice the tangential one
+    (2 - 1/|x|)/|x|; inside it is the identity (1). A Gaussian of standard deviation sigma
+    at x becomes one of about sigma * contraction_scale(x) (Zip-NeRF's isotropic
+    approximation of mip-NeRF 360's linearised covariance). x: [..., 3] -> [...].
+    """
+    n = jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=-1), 1e-20))
+    outer = jnp.cbrt((1.0 / n**2) * ((2.0 - 1.0 / n) / n) ** 2)
+    return jnp.where(n <= 1.0, 1.0, outer)
 
 
 # ----------------------------------------------------------------------------- encodings

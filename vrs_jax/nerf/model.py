@@ -169,8 +169,13 @@ def position_features(params: Any, cfg: NerfConfig, means: Array, covs: Array,
 
     means, covs: [R, S, 3] frustum Gaussians; t_vals: [R, S + 1]; radii: [R] cone radius at
     t = 1. IPE reads the Gaussians; the hash grid reads the means mapped to the unit cube and
-    weights its levels by the frustum's radial std (hashgrid.footprint_std).
+    weights its levels by the frustum's radial std (hashgrid.footprint_std). With
+    ``cfg.contraction`` the Gaussians are first contracted (:func:`contract_gaussians`).
     """
+    scale = None
+    if cfg.contraction:
+        means, scale = contract_gaussians(means, cfg.norm_radius)
+        covs = covs * scale[..., None] ** 2
     if cfg.encoding != "hashgrid":
         return mipnerf.integrated_pos_enc(means, covs, cfg.min_deg_point, cfg.max_deg_point)
     n_rays, n_samples = means.shape[:2]
@@ -178,10 +183,41 @@ def position_features(params: Any, cfg: NerfConfig, means: Array, covs: Array,
     x = (means.reshape(-1, 3) + cfg.norm_radius) / half
     sigma = None
     if cfg.hash_antialias:
-        sigma = hashgrid.footprint_std(t_vals, radii).reshape(-1) / half
+        sigma = hashgrid.footprint_std(t_vals, radii)
+        if scale is not None:
+            sigma = sigma * scale
+        sigma = sigma.reshape(-1) / half
     res, dense = hash_levels(cfg)
     feats = hashgrid.encode(params[HASH_TABLE], x, sigma, res, dense)
     return feats.reshape(n_rays, n_samples, -1)
+
+
+def inner_radius(norm_radius: float) -> float:
+    """Radius of a contracted field's inner ball in the normalised frame: half the cube's,
+    so that the contracted space (twice the ball) fills the cube [-norm_radius, +]^3."""
+    return 0.5 * norm_radius
+
+
+def contract_gaussians(means: Array, norm_radius: float) -> tuple[Array, Array]:
+    """Sample Gaussians of the normalised frame pushed through the scene contraction.
+
+    The inner ball (radius :func:`inner_radius`) is kept, the rest of space is contracted
+    into the ball of twice its radius (mipnerf.contract). means: [..., 3] -> contracted
+    means [..., 3] (inside [-norm_radius, norm_radius]^3) and the contraction's isotropic
+    length scale [...] by which every standard deviation shrinks there.
+    """
+    r = inner_radius(norm_radius)
+    u = means / r
+    return mipnerf.contract(u) * r, mipnerf.contraction_scale(u)
+
+
+def sample_pivot(cfg: NerfConfig, directions: Array) -> Array | None:
+    """Per-ray pivot of the piecewise sample spacing (contracted fields), None otherwise:
+    the t at which a ray from the ball's centre would leave the inner ball.
+    directions: [R, 3] normalised frame -> [R]."""
+    if not cfg.contraction:
+        return None
+    return inner_radius(cfg.norm_radius) / jnp.linalg.norm(directions, axis=-1)
 
 
 def _mlp_params(params: Any) -> Any:
@@ -226,7 +262,8 @@ def render_levels(field: Field, origins: Array, directions: Array, radii: Array,
     view_enc = _view_encoding(cfg, d)
     keys = jax.random.split(key, 4)
     t_vals, (means, covs) = mipnerf.sample_along_rays(
-        keys[0], o, d, r, near, far, cfg.num_samples_coarse, randomized, cfg.lindisp)
+        keys[0], o, d, r, near, far, cfg.num_samples_coarse, randomized, cfg.lindisp,
+        sample_pivot(cfg, d))
     out = []
     for level in range(cfg.num_levels):
         if level > 0:

@@ -56,6 +56,7 @@ from vrs_jax.nerf.ilm import ILM
 from vrs_jax.nerf.model import (
     Field,
     init_stacked_params,
+    inner_radius,
     mse_to_psnr,
     nerf_loss,
     render_levels,
@@ -280,11 +281,19 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
     background = np.asarray(scene.background if scene.background is not None else (0, 0, 0),
                             np.float32)
     centers, scales = [], []
+    if cfg.contraction:
+        typical = data_lib.typical_depths(
+            r_near, r_far, None if points3d is None or not len(points3d)
+            else data_lib.point_depths(refs, points3d))
     for c in range(cfg.n_clusters):
         sel = clustering.membership[c]
-        pts = data_lib.frustum_points(refs.K[sel], refs.R[sel], refs.t[sel], refs.sizes[sel],
-                                      r_near[sel], r_far[sel])
-        ctr, s = data_lib.normalization(pts, cfg.norm_radius)
+        if cfg.contraction:
+            ctr, radius = data_lib.inner_ball(refs.centers[sel], typical[sel])
+            s = inner_radius(cfg.norm_radius) / radius
+        else:
+            pts = data_lib.frustum_points(refs.K[sel], refs.R[sel], refs.t[sel],
+                                          refs.sizes[sel], r_near[sel], r_far[sel])
+            ctr, s = data_lib.normalization(pts, cfg.norm_radius)
         centers.append(ctr)
         scales.append(s)
     cd = ClusterData(members=jnp.asarray(members), counts=jnp.asarray(counts),
@@ -685,7 +694,8 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             try:
                 state, old, bad = restore_latest(mngr, state, warn=log)
                 # a longer run of the same map continues (only the step budget differs)
-                same = {**(old.get("config") or {}), "max_steps": cfg.max_steps}
+                same = {**NerfConfig.ADDED_FIELDS, **(old.get("config") or {}),
+                        "max_steps": cfg.max_steps}
                 if json.dumps(same, sort_keys=True) != json.dumps(meta["config"],
                                                                    sort_keys=True):
                     raise VrsError("checkpoint was trained with a different config; use "
