@@ -113,3 +113,21 @@ def test_scene_with_one_image_cannot_be_trained(toy):
     only_queries = dataclasses.replace(toy, is_query=np.ones(4, bool))
     with pytest.raises(VrsError, match="no posed reference"):
         data.check_scene_for_training(only_queries)
+
+
+def test_inner_ball_and_unbounded_ratio():
+    """The inner ball holds every camera plus the median content depth; a far bound many
+    radii beyond it makes the scene unbounded, a bound near the cameras does not."""
+    rng = np.random.default_rng(0)
+    cams = rng.normal(0, 1, (20, 3))
+    depths = np.full(20, 3.0)
+    center, radius = data.inner_ball(cams, depths)
+    np.testing.assert_allclose(center, cams.mean(0), rtol=1e-6)
+    assert np.all(np.linalg.norm(cams - center, axis=1) <= radius - 3.0 + 1e-6)
+    assert data.unbounded_ratio(cams, depths, np.full(20, 4.0)) < 1
+    assert data.unbounded_ratio(cams, depths, np.full(20, 500.0)) > data.UNBOUNDED_RATIO
+    np.testing.assert_allclose(data.typical_depths(np.full(2, 1.0), np.full(2, 4.0),
+                                                   [np.array([5.0, 7.0, np.nan]), np.zeros(0)]),
+                               [6.0, 2.0])
+    with pytest.raises(VrsError):
+        data.inner_ball(np.zeros((3, 3)), np.zeros(3))

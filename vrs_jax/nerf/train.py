@@ -281,10 +281,16 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
     background = np.asarray(scene.background if scene.background is not None else (0, 0, 0),
                             np.float32)
     centers, scales = [], []
-    if cfg.contraction:
-        typical = data_lib.typical_depths(
-            r_near, r_far, None if points3d is None or not len(points3d)
-            else data_lib.point_depths(refs, points3d))
+    typical = data_lib.typical_depths(
+        r_near, r_far, None if points3d is None or not len(points3d)
+        else data_lib.point_depths(refs, points3d))
+    if not cfg.contraction:
+        ratio = data_lib.unbounded_ratio(refs.centers, typical, r_far)
+        if ratio > data_lib.UNBOUNDED_RATIO:
+            warnings.warn(f"the scene looks unbounded (its far bounds are {ratio:.0f}x the "
+                          "radius of the region its cameras see up close): --set "
+                          "contraction=true keeps the far field without spending the grid "
+                          "on it", stacklevel=2)
     for c in range(cfg.n_clusters):
         sel = clustering.membership[c]
         if cfg.contraction:
