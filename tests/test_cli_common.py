@@ -42,3 +42,21 @@ def test_unknown_format_lists_images_too():
                           "downscale": None})()
     with pytest.raises(VrsError, match=r"known: .*colmap, images"):
         load_scene_from_args(args)
+
+
+def test_outdoor_entry_points_contract_the_far_field_by_default():
+    """Cambridge and Aachen are unbounded: their training commands set contraction=true
+    unless the user says otherwise (a later --set wins); 7Scenes (indoor) does not."""
+    from vrs_jax.cli import train_aachen, train_cambridge
+    from vrs_jax.cli.train import build_parser
+    from vrs_jax.nerf.config import parse_overrides
+
+    cam = train_cambridge.parser().parse_args(["--root", "r", "--scene", "s", "--out", "o"])
+    assert parse_overrides(cam.set) == {"contraction": True}
+    off = train_cambridge.parser().parse_args(["--root", "r", "--scene", "s", "--out", "o",
+                                               "--set", "contraction=false"])
+    assert parse_overrides(off.set) == {"contraction": False}
+    aachen = train_aachen.parser().parse_args(["--root", "r", "--out", "o"])
+    assert parse_overrides(aachen.set) == {"contraction": True} and aachen.clusters == 16
+    seven = build_parser("7scenes").parse_args(["--root", "r", "--out", "o"])
+    assert "contraction" not in parse_overrides(seven.set)
