@@ -44,14 +44,24 @@ class TrackConfig:
     # change, beyond which a point seen from that reference is rarely matched.
     max_ray_angle_deg: float = 45.0
     # Search radius (pixels) of the tracking pass around the map points projected with the
-    # predicted pose. Wider than the guided pass's (which starts from a refined pose): the
-    # constant-velocity prediction of a smooth stream is off by a few pixels, more where the
-    # motion changes; the ratio test and the refinement remove the extra candidates.
-    radius_px: float = 12.0
+    # predicted pose: the constant-velocity prediction of a smooth stream is off by a few
+    # pixels, more where the motion changes. The radius also sets what the pass renders (the
+    # points with a query keypoint that close), so the smallest that tracks: on the
+    # synthetic stream at 160x120 (4.7 cm and 3.5 deg between frames, test map) 8 px and
+    # 12 px both track 19 of 20 frames (benchmarks.track --track radius_px=12); the full
+    # guided pass uses 8 px for a first pose a few pixels off as well.
+    radius_px: float = 8.0
     # Inlier threshold (pixels) of the tracking pass's refinement; None: the PnP config's
     # (the RANSAC seed's 6 px), since the pass starts from a prediction, not a refined pose.
-    # The config's guided passes then tighten it (guided_threshold_px).
+    # The re-matching passes then tighten it (guided_threshold_px).
     threshold_px: float | None = None
+    # Guided passes from the tracked pose on the patches the tracking pass rendered (they
+    # were rendered a few pixels from there; nothing is rendered again), matched within the
+    # config's guided_radius and refined with its guided_threshold_px: the tight gates of a
+    # guided pass for the cost of matching and refinement (milliseconds). A second
+    # rendering pass would cost as much as the tracking pass again (the guided pass is the
+    # largest stage: README), so the config's own guided_passes are not run.
+    refine_passes: int = 1
     # A tracked pose with fewer inliers is relocalized in full: the map seen from the right
     # pose matches many points near their projections, a wrong prediction few; 20 is above
     # PnP's 12 (a chance pose's inliers) with a margin.
@@ -60,7 +70,7 @@ class TrackConfig:
     # turned more than max_jump_deg from it, is relocalized: the search radius lets the pose
     # move only as far as the projections move within radius_px, so a larger jump came from
     # matches the radius should not have allowed (a wrong convergence). A relocalized pose
-    # that far from the prediction also restarts the motion prior (the stream jumped).
+    # that far from the prediction also re-anchors the motion prior (the stream jumped).
     max_jump: float = 0.1
     max_jump_deg: float = 10.0
     # Frames since the last good pose beyond which a frame is localized in full instead of
@@ -74,8 +84,10 @@ class TrackConfig:
     prior_verdicts: tuple[str, ...] = ("localized", "uncertain")
 
     def __post_init__(self):
-        if self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1:
-            raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1")
+        if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1
+                or self.refine_passes < 0):
+            raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1, "
+                           "refine_passes >= 0")
         if not (self.radius_px > 0 and self.max_jump > 0 and self.max_jump_deg > 0
                 and 0 < self.max_ray_angle_deg <= 180):
             raise VrsError("TrackConfig.radius_px, max_jump and max_jump_deg must be > 0, "

@@ -10,7 +10,9 @@ a frame needs only the guided pass, started from a predicted pose instead of a f
     track pass  the guided pass (``stages.guided_pass``) from the predicted pose: those
                 images' map points projected with it, rendered there (render mode), matched
                 within ``track.radius_px`` of their projections, the pose refined
-    guided      the config's guided passes from the tracked pose, as after a first pass
+    re-match    ``track.refine_passes`` guided passes from the tracked pose on the patches
+                the track pass rendered (nothing rendered again), with the config's guided
+                radius and inlier threshold: the tight gates of a guided pass
     accept      the verdict of the pose confidence is "localized", enough inliers, and the
                 pose did not jump far from the prediction (:func:`rejection`); else the
                 frame is localized in full (retrieval + first pass + guided)
@@ -189,13 +191,13 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
         s.update(st.describe(m, q, cfg, s))
     res = start_result(q, idx, R_pred, t_pred).replace(
         n_rendered=s.get("n_rendered", jnp.int32(0)))
-    res, inl = st.guided_pass(m, q, track_pass_config(cfg), s, res)
+    res, inl, (desc, mask) = st.guided_pass_described(m, q, track_pass_config(cfg), s, res)
     ok = jnp.any(inl)  # the refined pose was kept (success with inliers)
     res = res.replace(success=ok, fallback=~ok, R_first=res.R, t_first=res.t,
                       n_inliers_first=res.n_inliers, n_inliers_guided=jnp.int32(-1),
                       n_rendered_first=res.n_rendered)
-    if st.guided_on(cfg):
-        res = st.guided(m, q, cfg, {**s, "result": res})["result"]
+    for _ in range(cfg.track.refine_passes):  # the same patches, the guided pass's gates
+        res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
     return res
 
 
@@ -212,8 +214,8 @@ def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
     Returns:
       LocalizeResult: ``retrieved`` the references used (:func:`nearest_references`);
       R_first, t_first, n_inliers_first the tracking pass's pose; R, t, n_inliers after the
-      config's guided passes; success False (and the predicted pose) when the tracking pass
-      found no pose.
+      re-matching passes (``n_inliers_guided`` the last one's); success False (and the
+      predicted pose) when the tracking pass found no pose.
     """
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     return _track_jit(m, q, f32(R_pred), f32(t_pred), f32(size), cfg)
@@ -440,15 +442,24 @@ def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
                     res: TrackResult, scale: float, cfg: LocalizeConfig
                     ) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """The last two good poses after frame ``i``: its pose is added when it is a PnP pose
-    whose verdict is in ``track.prior_verdicts``; a full localization that lands farther
-    from the prediction than the jump limits restarts the history (the stream jumped: the
-    old motion is not the one to extrapolate)."""
+    whose verdict is in ``track.prior_verdicts``. A full localization that lands farther
+    from the prediction than the jump limits re-anchors the history (the stream jumped:
+    dropped frames, or the camera was moved): the new pose, preceded by a virtual pose one
+    frame before it that keeps the motion per frame of the old history (the camera most
+    likely kept moving as it did; zero motion with one good pose)."""
     tc = cfg.track
     if not res.success or res.verdict not in tc.prior_verdicts:
         return history
-    entry = (i, np.asarray(res.R, np.float64), np.asarray(res.t, np.float64))
+    R, t = np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
+    entry = (i, R, t)
     if not res.tracked and res.R_pred is not None:
-        dt, dr = jump(res.R, res.t, res.R_pred, res.t_pred)
+        dt, dr = jump(R, t, res.R_pred, res.t_pred)
         if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
-            return [entry]
+            if len(history) < 2:
+                return [entry]
+            (f0, R0, t0), (f1, R1, t1) = history[-2:]
+            w, u = se3_log(*relative_motion(R0, t0, R1, t1))
+            n = float(f1 - f0)
+            dR, dt_ = se3_exp(-w / n, -u / n)  # one frame of the old motion, backwards
+            return [(i - 1, dR @ R, dR @ t + dt_), entry]
     return (history + [entry])[-2:]
