@@ -304,24 +304,27 @@ def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, config: str 
     return localize.get_config(config or ctx.m.config.name, source=mode, **overrides)
 
 
-def localize_overrides(items: list[str]) -> dict[str, Any]:
+def localize_overrides(items: list[str], defaults: Any = None) -> dict[str, Any]:
     """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields, and
-    optional floats: ``none`` or a number)."""
+    optional floats: ``none`` or a number); ``defaults``: another config dataclass instance
+    whose fields to override (e.g. a TrackConfig)."""
     from vrs_jax.localize.config import LocalizeConfig
 
-    defaults = LocalizeConfig()
+    defaults = LocalizeConfig() if defaults is None else defaults
     out: dict[str, Any] = {}
     for item in items:
         key, _, val = item.partition("=")
         key = key.strip().replace("-", "_")
-        cur = getattr(defaults, key, "")
+        cur = getattr(defaults, key, "") if key in {
+            f.name for f in dataclasses.fields(defaults)} else ""
         if cur is None:  # an optional number: "none" or a float
             cur = 0.0
             if val.strip().lower() == "none":
                 out[key] = None
                 continue
         if not _ or not isinstance(cur, (bool, int, float)):
-            raise VrsError(f"--localize expects KEY=VALUE of a number/bool field, got {item!r}")
+            raise VrsError(f"expected KEY=VALUE of a number/bool field of "
+                           f"{type(defaults).__name__}, got {item!r}")
         try:
             if isinstance(cur, bool):
                 out[key] = val.lower() in ("1", "true", "yes")

@@ -38,6 +38,23 @@ def small_synthetic_scene(tmp_path_factory) -> Path:
     return synthetic.generate(tmp_path_factory.mktemp("small_synthetic") / "room", cfg)
 
 
+STREAM_SYNTHETIC = dict(SMALL_SYNTHETIC, n_query=12, query_arc=0.063)
+"""The small synthetic room with its queries as an ordered stream: 12 frames ~4.7 cm and
+~3.5 deg apart along the loop (the same references, so ``tiny_map`` localizes them)."""
+
+
+@pytest.fixture(scope="session")
+def stream_scene(tmp_path_factory) -> Path:
+    """Folder of the small synthetic room whose queries are a stream (``STREAM_SYNTHETIC``;
+    its reference images are those of ``small_synthetic_scene``)."""
+    import dataclasses
+
+    from vrs_jax.data import synthetic
+
+    cfg = dataclasses.replace(synthetic.get_config("default"), **STREAM_SYNTHETIC)
+    return synthetic.generate(tmp_path_factory.mktemp("stream_synthetic") / "room", cfg)
+
+
 # ----------------------------------------------------------------------------- maps (localize)
 
 

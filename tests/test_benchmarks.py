@@ -343,3 +343,23 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
     assert r["float32"]["keypoints_per_view"] == pytest.approx(
         mean_valid[np.unique(np.round(np.linspace(0, len(mean_valid) - 1, 3))
                                       .astype(int))].mean())
+
+
+def test_track_benchmark_json_and_plot(tiny_map, stream_scene, tmp_path):
+    from benchmarks import track
+
+    out, png = tmp_path / "track.json", tmp_path / "track.png"
+    assert track.main(["--map", str(tiny_map), "--format", "7scenes", "--root",
+                       str(stream_scene), "--config", "test", "--modes", "track,full",
+                       "--max-frames", "5", "--jump-at", "2", "--jump-len", "1", "--json",
+                       str(out), "--plot", str(png), "--work", str(tmp_path), "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["benchmark"] == "track" and ENV_KEYS <= set(doc)
+    rows = {r["run"]: r for r in doc["rows"]}
+    assert set(rows) == {"track", "full", "track, jump"}
+    assert rows["track"]["n_frames"] == 5 and rows["track, jump"]["n_frames"] == 4
+    assert rows["track"]["n_tracked"] + rows["track"]["n_relocalized"] + rows["track"][
+        "n_full_no_prior"] == 5
+    assert _finite(rows["full"]["median_latency_s"], rows["track"]["median_latency_s"])
+    assert doc["jump"]["dropped"] == [2, 3] and doc["jump"]["first_frame_after_gap"] == 3
+    assert cv2.imread(str(png)) is not None

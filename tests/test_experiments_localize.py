@@ -136,3 +136,23 @@ def test_photos_to_map_to_results_in_two_commands(tmp_path):
     res = read_results(tmp_path / "loc" / "results.txt")
     assert sorted(res) == sorted(m.source.query_names)
     assert not (tmp_path / "loc" / "sfm").exists()  # the map's SfM was reused
+
+
+def test_localize_sequence_tracks_the_stream(tiny_map, stream_scene, tmp_path):
+    """--sequence: the queries in name order tracked; results.txt as for single images, each
+    query's summary says whether it was tracked, with its confidence and latency."""
+    out = tmp_path / "seq"
+    assert cli.main(["--map", str(tiny_map), "--format", "7scenes", "--root",
+                     str(stream_scene), "--sequence", "--config", "test", "--out", str(out),
+                     "--quiet"]) == 0
+    names = list(read_results(out / "results.txt"))
+    assert names == sorted(load_scene("7scenes", stream_scene).queries().names)
+    s = json.loads((out / "summary.json").read_text())
+    pq = s["per_query"]
+    assert not pq[0]["tracked"] and sum(p["tracked"] for p in pq) >= len(pq) - 3
+    assert all(p["latency_s"] > 0 and 0 <= p["confidence"] <= 1 for p in pq)
+    assert s["tracking"]["n_tracked"] == sum(p["tracked"] for p in pq)
+    assert s["recall"]["5cm_5deg"] >= 0.75
+    assert cli.main(["--map", str(tiny_map), "--format", "7scenes", "--root",
+                     str(stream_scene), "--sequence", "--report", "--config", "test", "--out",
+                     str(tmp_path / "r"), "--quiet"]) == 2  # one line: not with --sequence

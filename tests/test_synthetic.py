@@ -496,3 +496,19 @@ def test_cli_rooms(tmp_path, capsys):
     cfg = make_synthetic.config_of(make_synthetic.build_parser().parse_args(args))
     assert cfg.n_rooms == 2 and cfg.room_widths == (8.0, 3.5)
     assert sy.is_generated(out, cfg)
+
+
+def test_query_arc_makes_an_ordered_stream_and_keeps_the_references():
+    base = dataclasses.replace(CFG, n_reference=6, n_query=5)
+    stream = dataclasses.replace(base, query_arc=0.05)
+    a, b = sy.build_layout(base), sy.build_layout(stream)
+    np.testing.assert_array_equal(a.c2w_ref, b.c2w_ref)  # same room, same references
+    assert [bx.center.tolist() for bx in a.boxes] == [bx.center.tolist() for bx in b.boxes]
+    steps = np.linalg.norm(np.diff(b.c2w_query[:, :3, 3], axis=0), axis=1)
+    assert steps.max() < 0.15 and steps.max() < 1.5 * steps.min()  # short, even steps
+    spread = np.linalg.norm(np.diff(a.c2w_query[:, :3, 3], axis=0), axis=1)
+    assert spread.min() > steps.max()  # the default queries are spread over the loop
+    assert "query_arc" not in json.dumps(sy.config_dict(base))
+    assert sy.config_dict(stream)["query_arc"] == 0.05
+    with pytest.raises(VrsError, match="query_arc"):
+        dataclasses.replace(base, query_arc=1.5)

@@ -2,8 +2,8 @@
 
     python -m experiments.localize --map MAPDIR --out OUTDIR [--mode render|real]
         [--format F --root DIR [--query-every N] | --images DIR --queries LIST]
-        [--patch-size P] [--top-k K] [--full-sampling] [--basename] [--report] [--overwrite]
-        [--verbose]
+        [--patch-size P] [--top-k K] [--full-sampling] [--sequence] [--basename] [--report]
+        [--overwrite] [--verbose]
 
 The queries default to the map's own held-out split (its dataset and reader options are
 recorded in the map); --format/--root name another dataset; --images/--queries name a folder
@@ -15,6 +15,12 @@ OUTDIR/summary.json (metrics when the queries have ground truth, map bytes, medi
 stage, rays and NeRF evaluations per query, per-query diagnostics). A query that fails (no
 keypoints, no matches, RANSAC failure) still gets a line: the pose of its top-1 retrieved
 reference image, flagged in summary.json; an unreadable query image is listed with its reason.
+--sequence localizes the queries in name order as a video stream (``Localizer.track``): the
+first frame, and any frame whose tracking is rejected, in full; every other frame by the
+guided pass alone from the pose predicted by constant velocity (no retrieval, no first
+pass). summary.json then gives per query whether it was ``tracked``, its confidence and
+its ``latency_s``; a blank or unreadable frame is listed with its reason and tracking resumes
+after it.
 An existing --out is never replaced without --overwrite, and only once the new run is
 complete (written into OUTDIR.tmp-PID first; OUTDIR.lock marks a folder in use). A run record
 (command line, settings, code and library versions, timings) goes to OUTDIR/run.json.
@@ -72,6 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top-k", type=int, default=None, help="retrieved reference images")
     p.add_argument("--full-sampling", action="store_true",
                    help="render with coarse+fine sampling instead of the depth-guided interval")
+    p.add_argument("--sequence", action="store_true",
+                   help="the queries are a video stream: localize them in name order, "
+                        "tracking each frame from the previous poses (guided pass from a "
+                        "constant-velocity prediction) and localizing in full only the first "
+                        "frame and frames whose tracking is rejected")
     p.add_argument("--basename", action="store_true",
                    help="write bare file names in results.txt (Aachen benchmark)")
     p.add_argument("--no-timing", action="store_true",
@@ -169,6 +180,10 @@ def run(args, argv: list[str] | None = None) -> dict:
         print(metrics.format_table(summary, title=title))
     print(f"{summary['n_success']}/{summary['n_queries']} localized, {summary['n_fallback']} "
           f"fallback, {summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
+    if "tracking" in summary:
+        tk = summary["tracking"]
+        print(f"tracking: {tk['n_tracked']} tracked, {tk['n_relocalized']} relocalized, "
+              f"{tk['n_full']} localized in full without a prior, {tk['n_flagged']} flagged")
     print(f"verdicts: {summary['n_localized']} localized, {summary['n_uncertain']} uncertain, "
           f"{summary['n_failed']} failed (confidence below {LOCALIZED_AT}: uncertain; no PnP "
           "pose: failed)")
@@ -182,8 +197,16 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     m = maps.load_map(args.map, descriptors=args.mode != "render")
     cfg = make_config(m, args)
     queries = query_scene(m, args, out / "sfm")
-    results, info = localize_scene(m, queries, cfg, progress=not args.quiet,
-                                   timed=not args.no_timing)
+    tracks = None
+    if args.sequence:
+        if args.report:
+            raise VrsError("--report draws each query's full localization stages; it is not "
+                           "available with --sequence")
+        queries, results, info, tracks = localize_sequence(m, queries, cfg,
+                                                           progress=not args.quiet)
+    else:
+        results, info = localize_scene(m, queries, cfg, progress=not args.quiet,
+                                       timed=not args.no_timing)
     ok = [i for i, r in enumerate(results) if r is not None]
     R = np.stack([np.asarray(results[i].R, np.float64) for i in ok]) if ok else np.zeros((0, 3,
                                                                                         3))
@@ -195,6 +218,11 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v))
                             for n, r, c, v in zip(queries.names, results, conf, verdict,
                                                   strict=True)]
+    if tracks is not None:
+        for pq, tr in zip(summary["per_query"], tracks, strict=True):
+            pq.update(tracked=tr.tracked, relocalized=tr.relocalized,
+                      latency_s=round(tr.latency_s, 4), rejected=tr.rejected)
+        summary["tracking"] = tracking_counts(tracks)
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))
     if args.report:
         from vrs_jax.eval.html import write_report
@@ -206,6 +234,52 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                                 **{k: v for k, v in info["timing_s"].items() if v is not None}},
                argv)
     return summary, f"{cfg.source} mode, {len(queries)} queries"
+
+
+def localize_sequence(m: maps.Map, queries, cfg: localize.LocalizeConfig,
+                      progress: bool = True) -> tuple:
+    """Track the queries in name order (``Localizer.track``, compiled first on the first
+    frame's size so that no latency includes compilation). Returns (the queries in that
+    order, per query a LocalizeResult or None, run info as ``localize_scene``'s with
+    ``timing_s["per_frame"]`` the median latency, the TrackResults)."""
+    from vrs_jax.localize.batch import rays_rendered
+    from vrs_jax.localize.render import full_image_evals, nerf_evals_per_ray
+
+    queries = queries.subset(np.argsort(np.asarray(queries.names, object), kind="stable"))
+    loc = localize.Localizer(m, cfg)
+    w, h = (int(s) for s in queries.sizes[0])
+    loc.warmup(w, h, track=True)
+    tracks = loc.track(list(queries.image_paths), queries.K, list(queries.dist),
+                       names=list(queries.names), progress=progress)
+    results = [tr.localize_result() for tr in tracks]
+    done = [r for r in results if r is not None]
+    rays = rays_rendered(m, cfg, results)
+    lat = [tr.latency_s for tr in tracks if tr.error is None]
+    timing = dict.fromkeys(localize.STAGE_NAMES)
+    timing.update(query_preparation=None, per_frame=float(np.median(lat)) if lat else None)
+    info = {"rays_per_query": rays,
+            "nerf_evals_per_query": rays * nerf_evals_per_ray(m, cfg)
+            if cfg.source == "render" else 0.0,
+            "full_image_evals_per_query": float(np.mean(
+                [full_image_evals(m, r.retrieved) for r in done] or [0.0]))
+            if cfg.source == "render" else 0.0,
+            "timing_s": timing, "n_success": int(sum(bool(r.success) for r in done)),
+            "errors": {tr.name: tr.error for tr in tracks if tr.error is not None}}
+    return queries, results, info, tracks
+
+
+def tracking_counts(tracks) -> dict:
+    """How a stream's frames were localized: tracked, relocalized (tracking rejected, then
+    localized in full), full (no prior: the first frame, or after a gap), flagged
+    (unreadable or blank), and the median latency of the tracked and the full ones."""
+    med = lambda xs: float(np.median(xs)) if xs else None  # noqa: E731
+    full = [tr for tr in tracks if tr.error is None and not tr.tracked]
+    return {"n_tracked": sum(tr.tracked for tr in tracks),
+            "n_relocalized": sum(tr.relocalized for tr in tracks),
+            "n_full": sum(tr.error is None and not tr.attempted for tr in tracks),
+            "n_flagged": sum(tr.error is not None for tr in tracks),
+            "median_latency_tracked_s": med([tr.latency_s for tr in tracks if tr.tracked]),
+            "median_latency_full_s": med([tr.latency_s for tr in full])}
 
 
 def per_query(name: str, r, error: str | None, confidence: float = 0.0,

@@ -1,11 +1,14 @@
 """Generate the embedded synthetic scene (a textured room) in the 7Scenes layout.
 
     python -m experiments.make_synthetic --out DIR [--config default|test|rooms4]
-        [--rooms N] [--seed S] [--size WxH] [--n-ref N] [--n-query N] [--overwrite]
+        [--rooms N] [--seed S] [--size WxH] [--n-ref N] [--n-query N] [--query-arc F]
+        [--overwrite]
 
 ``--config rooms4`` is the large scene (four rooms in a row joined by doorways, one camera
 loop per room: the multi-cluster benchmark's scene); ``--rooms N`` puts N equal rooms in a row
-(with ``--config rooms4``: N rooms, the first 8 m wide, the others 3.5 m).
+(with ``--config rooms4``: N rooms, the first 8 m wide, the others 3.5 m). ``--query-arc F``
+makes the queries an ordered stream (a robot's video, for ``experiments.localize
+--sequence`` and ``benchmarks.track``): evenly spaced along the fraction F of the loop.
 
 Writes DIR/seq-01 (reference frames), DIR/seq-02 (query frames), TrainSplit.txt,
 TestSplit.txt, intrinsics.txt and README.txt; load it back with
@@ -63,6 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-query", type=count_at_least(0), default=None, metavar="N",
                    help=f"query frames on the offset path (default: the config's, {d.n_query} "
                         "for the room)")
+    p.add_argument("--query-arc", type=float, default=None, metavar="F",
+                   help="queries as an ordered stream evenly spaced along this fraction of "
+                        "the camera loop, in (0, 1] (a video for tracking; default: spread "
+                        "over the whole loop)")
     p.add_argument("--overwrite", action="store_true",
                    help="regenerate even if DIR already holds this scene, or replace a synthetic "
                         "scene of other settings")
@@ -80,6 +87,8 @@ def config_of(args: argparse.Namespace):
         over["n_reference"] = args.n_ref
     if args.n_query is not None:
         over["n_query"] = args.n_query
+    if args.query_arc is not None:
+        over["query_arc"] = args.query_arc
     if args.rooms is not None and args.rooms != base.n_rooms:
         widths = ()
         if base.room_widths:  # keep the config's pattern: first room as given, others as

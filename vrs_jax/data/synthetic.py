@@ -90,6 +90,11 @@ class SyntheticConfig:
     query_radial_offset: float = 0.15  # amplitude (m); plus a constant 0.05 m outward
     query_height_offset: float = 0.10  # amplitude (m)
     query_angle_offset_deg: float = 6.0  # amplitude of yaw/pitch offsets (deg)
+    # 0: the queries sit at random fractions between reference loop parameters, spread over
+    # the whole loop (the localization benchmark's queries, far apart). > 0: an ordered
+    # stream, as a robot's video: n_query frames evenly spaced along this fraction of the
+    # loop (on the same offset path), from a random start (tracking, localize.track).
+    query_arc: float = 0.0
     # Textures: 256 texels per metre (3.9 mm) -- finer than a pixel at every distance in the
     # room at 320x240, so detail is limited by the camera, not the texture.
     texels_per_m: float = 256.0
@@ -124,6 +129,9 @@ class SyntheticConfig:
             raise VrsError("camera path must stay 0.5 m inside the room walls")
         if self.n_rooms < 1:
             raise VrsError("n_rooms must be >= 1")
+        if not 0.0 <= self.query_arc <= 1.0:
+            raise VrsError(f"query_arc must be in [0, 1] (a fraction of the loop), got "
+                           f"{self.query_arc}")
         if self.room_widths and len(self.room_widths) != self.n_rooms:
             raise VrsError(f"room_widths lists {len(self.room_widths)} widths for "
                            f"{self.n_rooms} rooms")
@@ -166,6 +174,8 @@ class SyntheticConfig:
 # while at their defaults, so a single-room scene's files are byte-identical to those written
 # before the extension existed.
 _ROOM_FIELDS = ("n_rooms", "room_widths", "door_width", "wall_thickness")
+# Left out likewise while at its default (0: queries spread over the loop).
+_STREAM_FIELDS = ("query_arc",)
 
 
 CONFIGS: dict[str, SyntheticConfig] = {
@@ -301,6 +311,17 @@ def _trajectory(cfg: SyntheticConfig, s: np.ndarray, phases: np.ndarray,
     return c2w
 
 
+def _query_parameters(cfg: SyntheticConfig, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Loop parameters [n] (radians) of a room's queries: at random fractions between
+    reference loop parameters (never on a reference), or with ``cfg.query_arc`` an ordered
+    stream evenly spaced along that fraction of the loop from a random start."""
+    if cfg.query_arc > 0:
+        start = rng.uniform(0.0, 2 * math.pi)
+        return start + 2 * math.pi * cfg.query_arc * np.arange(n) / max(n - 1, 1)
+    frac = rng.uniform(0.25, 0.75, size=n)
+    return 2 * math.pi * (np.arange(n) + frac) / max(n, 1)
+
+
 def _query_offsets(cfg: SyntheticConfig, s: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
     """Smooth offsets [N] of the query path from the reference loop at parameters s [N]."""
     ang = math.radians(cfg.query_angle_offset_deg)
@@ -408,10 +429,7 @@ def build_layout(cfg: SyntheticConfig) -> Layout:
         phases = _rng(cfg, 0, r).uniform(0.0, 2 * math.pi, size=11)
         s_ref = 2 * math.pi * np.arange(n_ref[r]) / n_ref[r]
         refs.append(traj(s_ref, phases))
-        # Queries sit at random fractions between reference loop parameters (never on a
-        # reference).
-        frac = _rng(cfg, 3, r).uniform(0.25, 0.75, size=n_q[r])
-        s_q = 2 * math.pi * (np.arange(n_q[r]) + frac) / max(n_q[r], 1)
+        s_q = _query_parameters(cfg, n_q[r], _rng(cfg, 3, r))
         queries.append(traj(s_q, phases, _query_offsets(cfg, s_q, phases)))
         # Boxes must clear every camera of a densely sampled reference and query path.
         s_dense = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
@@ -850,6 +868,9 @@ def config_dict(cfg: SyntheticConfig) -> dict:
     for k in _ROOM_FIELDS:
         if d[k] == getattr(default, k) or (k in ("door_width", "wall_thickness")
                                            and cfg.n_rooms == 1):
+            del d[k]
+    for k in _STREAM_FIELDS:
+        if d[k] == getattr(default, k):
             del d[k]
     return json.loads(json.dumps(d))
 

@@ -15,7 +15,7 @@ import dataclasses
 from vrs_jax import configio
 from vrs_jax.errors import VrsError
 from vrs_jax.features.patches import PatchConfig
-from vrs_jax.localize.confidence import ConfidenceConfig
+from vrs_jax.localize.confidence import VERDICTS, ConfidenceConfig
 from vrs_jax.localize.pnp import PnPConfig
 
 # "render": describe NeRF-rendered patches of the reference keypoints (VRS-NeRF);
@@ -23,6 +23,81 @@ from vrs_jax.localize.pnp import PnPConfig
 # hierarchical-method baseline, the paper's "GT" row). "gt" is accepted for "real".
 SOURCES = ("render", "real")
 ALIASES = {"gt": "real"}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+    """Tracking a stream (``Localizer.track``, :mod:`vrs_jax.localize.track`): a frame with
+    a pose prior (constant velocity from the last good poses) skips retrieval and the first
+    pass and runs one tracking pass, the guided pass started from the predicted pose, then
+    the config's own guided passes; it keeps the tracked pose only if all the tests below
+    pass, else it is localized in full."""
+
+    # Reference images whose map points the tracking pass renders and matches: the k images
+    # with the most map points in view of the predicted camera (projected inside the image,
+    # in front, seen from the reference within max_ray_angle_deg of the predicted ray). 0:
+    # the config's top_k, as many as retrieval hands the first pass.
+    top_k: int = 0
+    # A reference's map point counts as in view only if its ray from the reference and the
+    # ray from the predicted camera meet at it within this angle: SIFT-like descriptors (and
+    # the keypoint frame transferred to the predicted view) hold up to ~45 deg of viewpoint
+    # change, beyond which a point seen from that reference is rarely matched.
+    max_ray_angle_deg: float = 45.0
+    # Search radius (pixels) of the tracking pass around the map points projected with the
+    # predicted pose: the constant-velocity prediction of a smooth stream is off by a few
+    # pixels, more where the motion changes. The radius also sets what the pass renders (the
+    # points with a query keypoint that close), so the smallest that tracks: on the
+    # synthetic stream at 160x120 (4.7 cm and 3.5 deg between frames, test map) 8 px and
+    # 12 px both track 19 of 20 frames (benchmarks.track --track radius_px=12); the full
+    # guided pass uses 8 px for a first pose a few pixels off as well.
+    radius_px: float = 8.0
+    # Inlier threshold (pixels) of the tracking pass's refinement; None: the PnP config's
+    # (the RANSAC seed's 6 px), since the pass starts from a prediction, not a refined pose.
+    # The re-matching passes then tighten it (guided_threshold_px).
+    threshold_px: float | None = None
+    # Guided passes from the tracked pose on the patches the tracking pass rendered (they
+    # were rendered a few pixels from there; nothing is rendered again), matched within the
+    # config's guided_radius and refined with its guided_threshold_px: the tight gates of a
+    # guided pass for the cost of matching and refinement (milliseconds). A second
+    # rendering pass would cost as much as the tracking pass again (the guided pass is the
+    # largest stage: README), so the config's own guided_passes are not run.
+    refine_passes: int = 1
+    # A tracked pose with fewer inliers is relocalized in full: the map seen from the right
+    # pose matches many points near their projections, a wrong prediction few; 20 is above
+    # PnP's 12 (a chance pose's inliers) with a margin.
+    min_inliers: int = 20
+    # A tracked pose farther from its prediction than this fraction of the scene scale, or
+    # turned more than max_jump_deg from it, is relocalized: the search radius lets the pose
+    # move only as far as the projections move within radius_px, so a larger jump came from
+    # matches the radius should not have allowed (a wrong convergence). A relocalized pose
+    # that far from the prediction also re-anchors the motion prior (the stream jumped).
+    max_jump: float = 0.1
+    max_jump_deg: float = 10.0
+    # Frames since the last good pose beyond which a frame is localized in full instead of
+    # predicted: constant velocity extrapolates its error with the gap; after a few lost
+    # frames a full pass is cheaper than a failed tracking step plus a full pass.
+    max_gap: int = 3
+    # Verdicts of a pose that may seed the motion prior. "uncertain" too: on real
+    # photographs the confidence calls many right poses uncertain (README), and a wrong seed
+    # only costs one tracking step, whose own acceptance (a "localized" verdict, inliers,
+    # jump) then fails and relocalizes the frame.
+    prior_verdicts: tuple[str, ...] = ("localized", "uncertain")
+
+    def __post_init__(self):
+        if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1
+                or self.refine_passes < 0):
+            raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1, "
+                           "refine_passes >= 0")
+        if not (self.radius_px > 0 and self.max_jump > 0 and self.max_jump_deg > 0
+                and 0 < self.max_ray_angle_deg <= 180):
+            raise VrsError("TrackConfig.radius_px, max_jump and max_jump_deg must be > 0, "
+                           "max_ray_angle_deg in (0, 180]")
+        if self.threshold_px is not None and self.threshold_px <= 0:
+            raise VrsError("TrackConfig.threshold_px must be > 0 (or None)")
+        bad = set(self.prior_verdicts) - set(VERDICTS[:2])
+        if bad:
+            raise VrsError(f"TrackConfig.prior_verdicts must be among {VERDICTS[:2]}, got "
+                           f"{sorted(bad)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +167,8 @@ class LocalizeConfig:
     # failed), computed after the jitted pipeline from its outputs (localize.confidence;
     # measured there). No pose depends on them.
     confidence: ConfidenceConfig = ConfidenceConfig()
+    # Tracking a stream with a motion prior (Localizer.track; see TrackConfig).
+    track: TrackConfig = TrackConfig()
 
     def __post_init__(self):
         src = ALIASES.get(self.source, self.source)

@@ -5,6 +5,7 @@
     loc.warmup(320, 240)                                 # optional: compile before the first image
     r = loc.localize_image("query.png", K, dist)         # LocalizeResult of numpy values
     results, errors = loc.localize_batch(paths, Ks, dists)
+    frames = loc.track(paths, K, dist)                   # a stream: track with a motion prior
     loc = Localizer("maps/room", devices=4)              # batches split over 4 devices
 
 A thin wrapper around :func:`~vrs_jax.localize.query.prepare_query`,
@@ -28,6 +29,7 @@ import numpy as np
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import batch as batch_lib
+from vrs_jax.localize import track as track_lib
 from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
@@ -108,10 +110,41 @@ class Localizer:
           VrsError naming the path for an unreadable image, or the image when its size
           contradicts K.
         """
-        q = self.prepare(image, K, dist)
+        return self.localize_query(self.prepare(image, K, dist))
+
+    def localize_query(self, q: Query) -> LocalizeResult:
+        """Localize a prepared query in full (retrieval, first pass, guided passes; the
+        descriptor cache when there is one) -> LocalizeResult of numpy values."""
         if self.cache is None:
             return jax.device_get(localize(self.map, q, self.cfg))
         return jax.device_get(self._localize_cached(q))
+
+    def track(self, frames: Sequence[Any], K: np.ndarray, dist: np.ndarray | None = None,
+              names: Sequence[str] | None = None, progress: bool = False
+              ) -> list[track_lib.TrackResult]:
+        """Localize a stream of frames in order, tracking with a motion prior
+        (:mod:`~vrs_jax.localize.track`): the first frame, and any frame whose tracking is
+        rejected, is localized in full (:meth:`localize_query`); the others run only the
+        guided pass from the constant-velocity prediction (one jitted tracking step,
+        compiled once). Settings: ``cfg.track``.
+
+        Args:
+          frames: image files or arrays ([H, W] grey / [H, W, 3] RGB), in stream order.
+          K: [3, 3] intrinsics of every frame, or [N, 3, 3] one per frame.
+          dist: None, one [5] OpenCV distortion, or one per frame (entries may be None).
+          names: per frame, for results and messages (default: the path or "frame i").
+          progress: show a progress bar.
+        Returns:
+          per frame a :class:`~vrs_jax.localize.track.TrackResult`: the LocalizeResult
+          fields plus ``tracked``, ``confidence``, ``verdict``, ``latency_s``; an unreadable
+          or blank frame has ``error`` set (success False, verdict "failed") and the stream
+          goes on.
+        Raises:
+          VrsError for frames that are not a list, or a K / dist count that is not one or
+          one per frame.
+        """
+        return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
+                                      self.localize_query, names=names, progress=progress)
 
     def _localize_cached(self, q: Query) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered
@@ -201,10 +234,14 @@ class Localizer:
                 results[i] = jax.tree.map(lambda x, j=j: x[j], batch)
         return results, errors
 
-    def warmup(self, width: int, height: int) -> None:
+    def warmup(self, width: int, height: int, track: bool = False) -> None:
         """Compile query preparation and ``localize`` for images of this size (a blank image:
-        no keypoints, so a fallback result, with the shapes of any query)."""
+        no keypoints, so a fallback result, with the shapes of any query); with ``track``
+        also the tracking step of :meth:`track`."""
         f = float(max(width, height))
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
         q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")
         jax.block_until_ready(localize(self.map, q, self.cfg))
+        if track:
+            jax.block_until_ready(track_lib.track_step(
+                self.map, q, self.map.egm.R[0], self.map.egm.t[0], (width, height), self.cfg))

@@ -302,51 +302,101 @@ def guided_pass(m: Map, q: Query, cfg: LocalizeConfig, s: State, res: LocalizeRe
     Render mode renders only what the guided matching can use: each 3D point once (in the
     first retrieved image that sees it) and only where its projection has a query keypoint
     within ``guided_radius``."""
+    res, inl, _ = guided_pass_described(m, q, cfg, s, res)
+    return res, inl
+
+
+def guided_pass_described(m: Map, q: Query, cfg: LocalizeConfig, s: State,
+                          res: LocalizeResult) -> tuple[LocalizeResult, Array, tuple]:
+    """:func:`guided_pass`, also returning the candidates' descriptors it matched
+    (desc [k * K_max, D], mask [k * K_max]; mask all False when the pass did not run), so
+    that a further pass can re-match them from the refined pose without rendering
+    (:func:`guided_rematch`)."""
+    idx = s["idx"]
+    pid = m.egm.point_idx[idx].reshape(-1)  # [C]
+
+    def run(_):
+        desc, mask, n_new = guided_descriptors(m, q, cfg, s, res)
+        out, inl = guided_refine(m, q, cfg, idx, res, desc, mask, n_new)
+        return out, inl, (desc, mask)
+
+    def skip(_):
+        d = s["desc"].reshape(pid.shape[0], -1) if "desc" in s else jnp.zeros(
+            (pid.shape[0], q.desc.shape[-1]), q.desc.dtype)
+        return res, jnp.zeros(q.mask.shape, bool), (d, jnp.zeros(pid.shape, bool))
+
+    return jax.lax.cond(res.success, run, skip, None)
+
+
+def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
+                       res: LocalizeResult) -> tuple[Array, Array, Array]:
+    """The guided pass's candidate descriptors at ``res``'s pose: desc [C, D], mask [C]
+    (C = k * K_max) and the patches rendered [] int32 (render mode with ``guided_render``:
+    rendered from the pose, each 3D point once and only near a query keypoint; else the
+    first pass's descriptors in ``s``)."""
     idx = s["idx"]
     pid = m.egm.point_idx[idx].reshape(-1)  # [C]
     X = m.egm.points3d[jnp.maximum(pid, 0)]  # [C, 3]
     uv_r, z = geometry.project(q.K, res.R, res.t, X)
     cand = m.egm.kp_mask[idx].reshape(-1) & (pid >= 0) & (z > 1e-6)
+    n_new = jnp.int32(0)
+    if cfg.source == "render" and cfg.guided_render:
+        patches = cfg.patches or m.config.features.patches
+        keep = (first_occurrence(cand, pid)
+                & near_any(uv_r, q.points2d, q.mask, cfg.guided_radius))
+        gray, _, valid = jax.lax.map(
+            lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
+            (idx, keep.reshape(idx.shape[0], -1)))
+        desc = describe_patches(gray, m.config.features.descriptor)
+        mask = valid.reshape(-1)
+        n_new = jnp.sum(mask).astype(jnp.int32)
+    else:
+        desc, mask = s["desc"], s["desc_mask"].reshape(-1)
+    return desc.reshape(pid.shape[0], -1), mask & cand, n_new
 
-    def run(_):
-        n_new = jnp.int32(0)
-        if cfg.source == "render" and cfg.guided_render:
-            patches = cfg.patches or m.config.features.patches
-            keep = (first_occurrence(cand, pid)
-                    & near_any(uv_r, q.points2d, q.mask, cfg.guided_radius))
-            gray, _, valid = jax.lax.map(
-                lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
-                (idx, keep.reshape(idx.shape[0], -1)))
-            desc = describe_patches(gray, m.config.features.descriptor)
-            mask = valid.reshape(-1)
-            n_new = jnp.sum(mask).astype(jnp.int32)
-        else:
-            desc, mask = s["desc"], s["desc_mask"].reshape(-1)
-        mask = mask & cand
-        j, ok, _ = guided_match(q.points2d, q.desc, q.mask, uv_r,
-                                desc.reshape(pid.shape[0], -1), mask, pid,
-                                cfg.guided_radius, cfg.guided_ratio)
-        Xq = X[j]
-        pnp = guided_pnp(cfg)
-        inl0 = inlier_mask(res.R, res.t, q.points2d, Xq, ok, q.K, pnp.threshold_px)
-        pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, pnp)
-        better = pose.success & (pose.n_inliers >= res.n_inliers)
-        pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
-        k_max = m.egm.point_idx.shape[1]
-        geo = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, pose.R, pose.t, Xq,
-                              reference_centers(m, idx[j // k_max]), pose.inliers)
-        return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
-                           n_inliers=pick(pose.n_inliers, res.n_inliers),
-                           n_inliers_guided=pose.n_inliers.astype(jnp.int32),
-                           n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
-                           n_rendered=res.n_rendered + n_new,
-                           inlier_coverage=pick(geo[0], res.inlier_coverage),
-                           inlier_ray_angle_deg=pick(geo[1], res.inlier_ray_angle_deg),
-                           inlier_depth_spread=pick(geo[2], res.inlier_depth_spread)
-                           ), pose.inliers & better
 
+def guided_refine(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, res: LocalizeResult,
+                  desc: Array, mask: Array, n_new: Array) -> tuple[LocalizeResult, Array]:
+    """Match the query keypoints to the candidates (desc [C, D], mask [C]) predicted within
+    ``cfg.guided_radius`` px of their projections at ``res``'s pose, refine the pose on
+    those matches and keep it if it has at least as many inliers as ``res``. Returns the
+    result (``n_new`` patches added to ``n_rendered``) and the kept inliers [Kq]."""
+    pid = m.egm.point_idx[idx].reshape(-1)  # [C]
+    X = m.egm.points3d[jnp.maximum(pid, 0)]  # [C, 3]
+    uv_r, z = geometry.project(q.K, res.R, res.t, X)
+    mask = mask & (z > 1e-6)
+    j, ok, _ = guided_match(q.points2d, q.desc, q.mask, uv_r, desc, mask, pid,
+                            cfg.guided_radius, cfg.guided_ratio)
+    Xq = X[j]
+    pnp = guided_pnp(cfg)
+    inl0 = inlier_mask(res.R, res.t, q.points2d, Xq, ok, q.K, pnp.threshold_px)
+    pose = refine_seed(res.R, res.t, inl0, res.success, q.points2d, Xq, ok, q.K, pnp)
+    better = pose.success & (pose.n_inliers >= res.n_inliers)
+    pick = lambda a, b: jnp.where(better, a, b)  # noqa: E731
+    k_max = m.egm.point_idx.shape[1]
+    geo = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, pose.R, pose.t, Xq,
+                          reference_centers(m, idx[j // k_max]), pose.inliers)
+    return res.replace(R=pick(pose.R, res.R), t=pick(pose.t, res.t),
+                       n_inliers=pick(pose.n_inliers, res.n_inliers),
+                       n_inliers_guided=pose.n_inliers.astype(jnp.int32),
+                       n_matches=pick(jnp.sum(ok).astype(jnp.int32), res.n_matches),
+                       n_rendered=res.n_rendered + n_new,
+                       inlier_coverage=pick(geo[0], res.inlier_coverage),
+                       inlier_ray_angle_deg=pick(geo[1], res.inlier_ray_angle_deg),
+                       inlier_depth_spread=pick(geo[2], res.inlier_depth_spread)
+                       ), pose.inliers & better
+
+
+def guided_rematch(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, res: LocalizeResult,
+                   desc: Array, mask: Array) -> tuple[LocalizeResult, Array]:
+    """A guided pass from ``res``'s pose on descriptors already at hand (desc [C, D], mask
+    [C], e.g. a previous pass's: :func:`guided_pass_described`), rendering nothing; a no-op
+    unless ``res`` succeeded."""
     none = jnp.zeros(q.mask.shape, bool)
-    return jax.lax.cond(res.success, run, lambda _: (res, none), None)
+    return jax.lax.cond(
+        res.success,
+        lambda _: guided_refine(m, q, cfg, idx, res, desc, mask, jnp.int32(0)),
+        lambda _: (res, none), None)
 
 
 def guided(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:

@@ -1,0 +1,154 @@
+"""localize.track: a synthetic stream is tracked (guided pass from the predicted pose) within
+the render-mode bound of the other localize tests, a jump relocalizes and recovers, a blank or
+unreadable frame is flagged and tracking resumes, bad input is one VrsError; the prediction
+and the reference choice on their own."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vrs_jax import geometry, localize, maps
+from vrs_jax.data.readers import load_scene
+from vrs_jax.errors import VrsError
+from vrs_jax.localize import track
+from vrs_jax.localize.localizer import Localizer
+
+# Render mode with one guided pass localizes tiny_map's queries within 5 cm
+# (tests/test_localize.py: the guided-pass test's per-query bound; median 1.4 cm).
+MAX_T_M, MAX_R_DEG = 0.05, 2.0
+
+
+@pytest.fixture(scope="module")
+def loc(tiny_map):
+    m = maps.load_map(tiny_map).without_descriptors()
+    return Localizer(m, localize.get_config("test", guided_passes=1))
+
+
+@pytest.fixture(scope="module")
+def stream(stream_scene, small_synthetic_scene):
+    qs = load_scene("7scenes", stream_scene).queries()
+    refs = load_scene("7scenes", small_synthetic_scene).references()
+    ours = load_scene("7scenes", stream_scene).references()
+    # the same references as the map's scene: tiny_map serves this stream
+    np.testing.assert_allclose(ours.t, refs.t, atol=1e-9)
+    return qs
+
+
+def _errors(r, qs, i):
+    dt, dr = geometry.pose_errors(np.asarray(r.R, np.float64), np.asarray(r.t, np.float64),
+                                  qs.R[i], qs.t[i])
+    return float(dt), float(dr)
+
+
+def test_stream_is_tracked_within_the_render_bound(loc, stream):
+    idx = list(range(6))
+    out = loc.track([stream.image_paths[i] for i in idx], stream.K[0])
+    compiled = track.track_step._cache_size()
+    assert len(out) == len(idx) and not out[0].attempted and not out[0].tracked
+    for r, i in zip(out, idx, strict=True):
+        dt, dr = _errors(r, stream, i)
+        assert r.success and r.error is None and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+        assert r.latency_s > 0 and 0 <= r.confidence <= 1
+    tracked = [r for r in out if r.tracked]
+    assert len(tracked) >= len(idx) - 2, [(r.tracked, r.rejected) for r in out]
+    for r in tracked:  # the tracking step's pose: retrieval skipped, the guided pass ran
+        assert r.verdict == "localized" and r.n_inliers >= loc.cfg.track.min_inliers
+        assert r.n_inliers_guided >= 0 and r.R_pred is not None
+    # one compiled tracking step for the whole stream (a second stream adds none)
+    loc.track([stream.image_paths[i] for i in (6, 7)], stream.K[0])
+    assert track.track_step._cache_size() == compiled
+
+
+def test_a_jump_is_relocalized_and_recovers(loc, stream):
+    """Frames 3-6 dropped: the prediction for frame 7 is four frames behind (~19 cm,
+    ~14 deg), so its tracking is rejected and it is localized in full; then tracking
+    resumes."""
+    idx = [0, 1, 2, 7, 8, 9]
+    out = loc.track([stream.image_paths[i] for i in idx], [stream.K[i] for i in idx])
+    pred_dt, _ = geometry.pose_errors(out[3].R_pred, out[3].t_pred, stream.R[7], stream.t[7])
+    assert pred_dt > 0.1  # the prior really is wrong
+    assert out[3].attempted and not out[3].tracked and out[3].relocalized, out[3].rejected
+    assert out[3].rejected
+    for r, i in zip(out[3:], idx[3:], strict=True):
+        dt, dr = _errors(r, stream, i)
+        assert r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+    assert out[-1].tracked  # recovered: tracking again
+
+
+def test_blank_and_unreadable_frames_are_flagged_and_tracking_resumes(loc, stream,
+                                                                         tmp_path):
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"not a png")
+    w, h = (int(s) for s in stream.sizes[0])
+    frames = [stream.image_paths[0], stream.image_paths[1], np.zeros((h, w), np.float32),
+              stream.image_paths[3], bad, stream.image_paths[5]]
+    out = loc.track(frames, stream.K[0], names=[f"f{i}" for i in range(6)])
+    for j in (2, 4):
+        assert out[j].error and not out[j].success and out[j].verdict == "failed"
+        assert out[j].localize_result() is None and not out[j].tracked
+    assert "blank" in out[2].error and str(bad) in out[4].error
+    for j in (3, 5):  # the prior skips the flagged frame (a gap of two frames)
+        dt, dr = _errors(out[j], stream, j)
+        assert out[j].tracked and dt < MAX_T_M and dr < MAX_R_DEG, (j, dt, dr, out[j].rejected)
+        assert out[j].localize_result() is not None
+
+
+def test_bad_input_is_one_vrs_error(loc, stream):
+    paths = list(stream.image_paths[:3])
+    with pytest.raises(VrsError, match="3 frames but 2 K"):
+        loc.track(paths, stream.K[:2])
+    with pytest.raises(VrsError, match="3 frames but 1 distortions"):
+        loc.track(paths, stream.K[0], [np.zeros(5)])
+    with pytest.raises(VrsError, match="list of image paths"):
+        loc.track(str(paths[0]), stream.K[0])
+    with pytest.raises(VrsError, match="no frames"):
+        loc.track([], stream.K[0])
+    with pytest.raises(VrsError, match=r"\[3, 3\]"):
+        loc.track(paths, np.eye(4))
+    with pytest.raises(VrsError, match="3 frames but 2 names"):
+        loc.track(paths, stream.K[0], names=["a", "b"])
+    with pytest.raises(VrsError, match="TrackConfig"):
+        localize.get_config("test", track=localize.config.TrackConfig(radius_px=0))
+
+
+def _motion(k: int):
+    """World-to-camera pose k of a constant motion D^k P0."""
+    D = (geometry.axis_angle_to_rot(np.array([0.02, -0.05, 0.01])), np.array([0.1, 0.0, -0.03]))
+    R, t = geometry.axis_angle_to_rot(np.array([0.3, 0.2, -0.1])), np.array([0.5, -1.0, 2.0])
+    for _ in range(k):
+        R, t = D[0] @ R, D[0] @ t + D[1]
+    return R, t
+
+
+def test_constant_velocity_prediction():
+    h = [(1, *_motion(1)), (2, *_motion(2))]
+    for frame, want in ((3, 3), (4, 4)):  # the next frame, and one after a skipped frame
+        R, t = track.predict_pose(h, frame, max_gap=3)
+        np.testing.assert_allclose(R, _motion(want)[0], atol=1e-9)
+        np.testing.assert_allclose(t, _motion(want)[1], atol=1e-9)
+    # the last two good poses two frames apart: half their motion per frame
+    R, t = track.predict_pose([(0, *_motion(0)), (2, *_motion(2))], 3, max_gap=3)
+    np.testing.assert_allclose(t, _motion(3)[1], atol=1e-9)
+    R, t = track.predict_pose(h[1:], 3, max_gap=3)  # one pose: that pose
+    np.testing.assert_allclose(t, _motion(2)[1])
+    assert track.predict_pose(h, 6, max_gap=3) is None and track.predict_pose([], 1, 3) is None
+    w, u = track.se3_log(*_motion(1))
+    np.testing.assert_allclose(track.se3_exp(w, u)[1], _motion(1)[1], atol=1e-12)
+
+
+def test_references_in_view_of_a_reference_pose_include_it(tiny_map):
+    m = maps.load_map(tiny_map)
+    size = np.asarray(m.egm.sizes[0], np.float32)
+    hits = 0
+    for i in range(0, m.egm.num_images, 4):
+        idx = np.asarray(track.nearest_references(m, m.egm.K[i], m.egm.R[i], m.egm.t[i],
+                                                  size, 3, 45.0))
+        hits += int(i in idx)
+    assert hits >= 5  # of 6
+    # from the opposite viewing direction its points are not counted
+    flip = np.diag([-1.0, 1.0, -1.0]).astype(np.float32)
+    s = track.reference_scores(m, m.egm.K[0], flip @ m.egm.R[0], flip @ m.egm.t[0], size,
+                               45.0)
+    s0 = track.reference_scores(m, m.egm.K[0], m.egm.R[0], m.egm.t[0], size, 45.0)
+    assert int(s[0]) < int(s0[0])

@@ -1,0 +1,465 @@
+"""Tracking a stream of frames with the map (``Localizer.track``; docs/design.md, section 1).
+
+A robot's frames arrive in order, each close to the last. With the previous poses as a prior,
+a frame needs only the guided pass, started from a predicted pose instead of a first pass's:
+
+    predict     constant velocity: the relative motion of the last two good poses applied
+                once more (scaled to the frame gap on SE(3)); one good pose: that pose
+    references  the k reference images with the most map points in view of the predicted
+                camera (:func:`reference_scores`), instead of retrieval
+    track pass  the guided pass (``stages.guided_pass``) from the predicted pose: those
+                images' map points projected with it, rendered there (render mode), matched
+                within ``track.radius_px`` of their projections, the pose refined
+    re-match    ``track.refine_passes`` guided passes from the tracked pose on the patches
+                the track pass rendered (nothing rendered again), with the config's guided
+                radius and inlier threshold: the tight gates of a guided pass
+    accept      the verdict of the pose confidence is "localized", enough inliers, and the
+                pose did not jump far from the prediction (:func:`rejection`); else the
+                frame is localized in full (retrieval + first pass + guided)
+
+The first frame, a frame after more than ``track.max_gap`` frames without a good pose, and a
+frame whose tracking is rejected are localized in full. An unreadable frame, or one with fewer
+keypoints than PnP needs inliers (a blank frame), is flagged (``error``) and skipped; the
+prior then comes from the last good poses. Everything from the references to the guided
+passes is one jitted function with fixed shapes (:func:`track_step`): one compilation for the
+whole stream. The prediction, the acceptance and the loop are host code (numpy).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from vrs_jax import geometry
+from vrs_jax.data.images import read_gray
+from vrs_jax.errors import VrsError
+from vrs_jax.localize import stages as st
+from vrs_jax.localize.confidence import map_scale, pose_confidence, result_fields
+from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.localize.query import Query
+from vrs_jax.localize.stages import LocalizeResult
+from vrs_jax.maps import Map
+
+Array = Any
+
+
+# ----------------------------------------------------------------------------- prediction
+
+
+def se3_log(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Twist (w [3] rotation vector, u [3]) of the rigid motion (R [3, 3], t [3]):
+    ``se3_exp(*se3_log(R, t)) == (R, t)``."""
+    w = np.asarray(geometry.rot_to_axis_angle(np.asarray(R, np.float64)), np.float64)
+    th2 = float(w @ w)
+    W = geometry.skew(w)
+    if th2 < 1e-12:
+        c = 1.0 / 12.0
+    else:
+        th = np.sqrt(th2)
+        c = (1.0 - th * np.sin(th) / (2.0 * (1.0 - np.cos(th)))) / th2
+    V_inv = np.eye(3) - 0.5 * W + c * (W @ W)
+    return w, V_inv @ np.asarray(t, np.float64)
+
+
+def se3_exp(w: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid motion (R [3, 3], t [3]) of the twist (w [3], u [3])."""
+    w = np.asarray(w, np.float64)
+    th2 = float(w @ w)
+    W = geometry.skew(w)
+    if th2 < 1e-12:
+        a, b = 0.5, 1.0 / 6.0
+    else:
+        th = np.sqrt(th2)
+        a, b = (1.0 - np.cos(th)) / th2, (th - np.sin(th)) / (th2 * th)
+    V = np.eye(3) + a * W + b * (W @ W)
+    return np.asarray(geometry.axis_angle_to_rot(w), np.float64), V @ np.asarray(u, np.float64)
+
+
+def relative_motion(R0: np.ndarray, t0: np.ndarray, R1: np.ndarray, t1: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The motion D [3, 3], [3] from world-to-camera pose 0 to pose 1: ``P1 = D P0``
+    (camera 0's coordinates to camera 1's)."""
+    R0, t0, R1, t1 = (np.asarray(a, np.float64) for a in (R0, t0, R1, t1))
+    dR = R1 @ R0.T
+    return dR, t1 - dR @ t0
+
+
+def predict_pose(history: Sequence[tuple[int, np.ndarray, np.ndarray]], frame: int,
+                 max_gap: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The constant-velocity pose prior of frame ``frame`` (world-to-camera R [3, 3], t [3],
+    float64) from the last good poses ``history`` [(frame index, R, t), ...] (oldest first).
+
+    None without a good pose, or when the last one is more than ``max_gap`` frames back. One
+    good pose (or two more than ``max_gap`` frames apart): that pose. Two: their relative
+    motion D over their frame gap n, applied for the gap g to this frame, ``D^(g/n) P_last``
+    on SE(3) (D itself for consecutive frames).
+    """
+    if not history:
+        return None
+    f1, R1, t1 = history[-1]
+    gap = frame - f1
+    if gap < 1 or gap > max_gap:
+        return None
+    R1, t1 = np.asarray(R1, np.float64), np.asarray(t1, np.float64)
+    if len(history) < 2 or f1 - history[-2][0] > max_gap:
+        return R1, t1
+    f0, R0, t0 = history[-2]
+    w, u = se3_log(*relative_motion(R0, t0, R1, t1))
+    s = gap / float(f1 - f0)
+    dR, dt = se3_exp(s * w, s * u)
+    return dR @ R1, dR @ t1 + dt
+
+
+def jump(R: np.ndarray, t: np.ndarray, R_pred: np.ndarray, t_pred: np.ndarray
+         ) -> tuple[float, float]:
+    """(camera-centre distance, rotation angle in degrees) of a pose from its prediction."""
+    f = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    dt, dr = geometry.pose_errors(f(R), f(t), f(R_pred), f(t_pred))
+    return float(dt), float(dr)
+
+
+# ----------------------------------------------------------------------------- tracking step
+
+
+def reference_scores(m: Map, K: Array, R: Array, t: Array, size: Array,
+                     max_ray_angle_deg: float) -> Array:
+    """[N] int32 per reference image: its map points in view of the camera (K [3, 3], R, t;
+    ``size`` [2] width, height in pixels): linked keypoints whose 3D point projects inside
+    the image, in front of the camera, with the rays from the reference and from the camera
+    meeting at the point within ``max_ray_angle_deg``."""
+    egm = m.egm
+    pid = egm.point_idx  # [N, K_max]
+    X = egm.points3d[jnp.maximum(pid, 0)]  # [N, K_max, 3]
+    uv, z = geometry.project(K, R, t, X.reshape(-1, 3))
+    uv, z = uv.reshape(pid.shape + (2,)), z.reshape(pid.shape)
+    inside = ((z > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 1] >= 0)
+              & (uv[..., 0] <= size[0]) & (uv[..., 1] <= size[1]))
+    a = X - geometry.camera_center(R, t)
+    b = X - st.reference_centers(m, jnp.arange(egm.num_images))[:, None, :]
+    cos = jnp.sum(a * b, -1) / jnp.maximum(jnp.linalg.norm(a, axis=-1)
+                                           * jnp.linalg.norm(b, axis=-1), 1e-12)
+    ok = egm.kp_mask & (pid >= 0) & inside & (cos >= jnp.cos(jnp.radians(max_ray_angle_deg)))
+    return jnp.sum(ok, axis=1).astype(jnp.int32)
+
+
+def nearest_references(m: Map, K: Array, R: Array, t: Array, size: Array, k: int,
+                       max_ray_angle_deg: float) -> Array:
+    """[k] int32 reference indices, most map points in view first (:func:`reference_scores`;
+    ties to the nearest camera centre)."""
+    score = reference_scores(m, K, R, t, size, max_ray_angle_deg).astype(jnp.float32)
+    d = jnp.linalg.norm(st.reference_centers(m, jnp.arange(m.egm.num_images))
+                        - geometry.camera_center(R, t), axis=-1)
+    score = score + 0.5 * (1.0 - d / jnp.maximum(jnp.max(d), 1e-12))  # < 1: ties only
+    return jax.lax.top_k(score, k)[1].astype(jnp.int32)
+
+
+def start_result(q: Query, idx: Array, R: Array, t: Array) -> LocalizeResult:
+    """The predicted pose as a result the guided pass can start from (success, no inliers)."""
+    i32, nan = jnp.int32(0), jnp.float32(jnp.nan)
+    R, t = jnp.asarray(R, jnp.float32), jnp.asarray(t, jnp.float32)
+    return LocalizeResult(R=R, t=t, success=jnp.bool_(True), fallback=jnp.bool_(False),
+                          n_inliers=i32, n_matches=i32, retrieved=idx, R_first=R, t_first=t,
+                          n_inliers_first=i32, n_inliers_guided=jnp.int32(-1), n_rendered=i32,
+                          n_rendered_first=i32, inlier_coverage=nan, inlier_ray_angle_deg=nan,
+                          inlier_depth_spread=nan)
+
+
+def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
+    """The guided-pass settings of the tracking pass: ``cfg`` with the tracking radius and
+    inlier threshold."""
+    return dataclasses.replace(cfg, guided_radius=cfg.track.radius_px,
+                               guided_threshold_px=cfg.track.threshold_px)
+
+
+def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
+                cfg: LocalizeConfig) -> LocalizeResult:
+    st.check(m, cfg)
+    k = min(cfg.track.top_k or cfg.top_k, m.egm.num_images)
+    idx = nearest_references(m, q.K, R_pred, t_pred, size, k, cfg.track.max_ray_angle_deg)
+    s: st.State = {"idx": idx}
+    if cfg.source == "real" or not cfg.guided_render:  # the passes read s["desc"]
+        if cfg.source == "render":
+            s.update(st.render(m, q, dataclasses.replace(cfg, early_exit_inliers=0), s))
+        s.update(st.describe(m, q, cfg, s))
+    res = start_result(q, idx, R_pred, t_pred).replace(
+        n_rendered=s.get("n_rendered", jnp.int32(0)))
+    res, inl, (desc, mask) = st.guided_pass_described(m, q, track_pass_config(cfg), s, res)
+    ok = jnp.any(inl)  # the refined pose was kept (success with inliers)
+    res = res.replace(success=ok, fallback=~ok, R_first=res.R, t_first=res.t,
+                      n_inliers_first=res.n_inliers, n_inliers_guided=jnp.int32(-1),
+                      n_rendered_first=res.n_rendered)
+    for _ in range(cfg.track.refine_passes):  # the same patches, the guided pass's gates
+        res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
+    return res
+
+
+_track_jit = jax.jit(_track_step, static_argnames=("cfg",))
+
+
+def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
+               cfg: LocalizeConfig) -> LocalizeResult:
+    """One tracking step (jitted; cfg static; one compilation per map and config).
+
+    Args:
+      m: the map; q: the frame's Query; R_pred [3, 3], t_pred [3]: the predicted
+        world-to-camera pose; size: [2] the frame's width and height in pixels.
+    Returns:
+      LocalizeResult: ``retrieved`` the references used (:func:`nearest_references`);
+      R_first, t_first, n_inliers_first the tracking pass's pose; R, t, n_inliers after the
+      re-matching passes (``n_inliers_guided`` the last one's); success False (and the
+      predicted pose) when the tracking pass found no pose.
+    """
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    return _track_jit(m, q, f32(R_pred), f32(t_pred), f32(size), cfg)
+
+
+track_step._cache_size = _track_jit._cache_size  # compilations so far (tests)
+
+
+# ----------------------------------------------------------------------------- acceptance
+
+
+def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.ndarray,
+              scale: float, cfg: LocalizeConfig) -> str | None:
+    """Why a tracked pose is not kept (None: kept): no pose, a verdict other than
+    "localized", fewer than ``track.min_inliers`` inliers, or a jump from the prediction
+    beyond ``track.max_jump`` (fraction of the scene ``scale``) or ``track.max_jump_deg``."""
+    tc = cfg.track
+    if not bool(r.success):
+        return "the tracking pass found no pose"
+    if verdict != "localized":
+        return f"confidence verdict {verdict}"
+    if int(r.n_inliers) < tc.min_inliers:
+        return f"{int(r.n_inliers)} inliers, fewer than {tc.min_inliers}"
+    dt, dr = jump(r.R, r.t, R_pred, t_pred)
+    if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
+        return (f"jumped {dt / scale:.3f} of the scene scale and {dr:.1f} deg from the "
+                "prediction")
+    return None
+
+
+# ----------------------------------------------------------------------------- the stream
+
+
+@dataclasses.dataclass
+class TrackResult:
+    """One frame of a tracked stream: the :class:`LocalizeResult` fields (numpy) and
+
+    name: the frame's name; tracked: the pose is the tracking step's (else a full
+    localization, or none); attempted: a prediction existed and the tracking step ran;
+    rejected: why that tracked pose was not kept (None if kept or not attempted);
+    confidence, verdict: the pose confidence (localize.confidence) of the pose returned;
+    latency_s: wall seconds of the frame (reading, preparation, tracking and any full
+    localization); R_pred, t_pred: the prediction (None without one); error: why the frame
+    has no result (unreadable, blank), else None.
+    """
+
+    name: str
+    R: np.ndarray
+    t: np.ndarray
+    success: bool
+    fallback: bool
+    n_inliers: int
+    n_matches: int
+    retrieved: np.ndarray
+    R_first: np.ndarray
+    t_first: np.ndarray
+    n_inliers_first: int
+    n_inliers_guided: int
+    n_rendered: int
+    n_rendered_first: int
+    inlier_coverage: float
+    inlier_ray_angle_deg: float
+    inlier_depth_spread: float
+    tracked: bool = False
+    attempted: bool = False
+    rejected: str | None = None
+    confidence: float = 0.0
+    verdict: str = "failed"
+    latency_s: float = 0.0
+    R_pred: np.ndarray | None = None
+    t_pred: np.ndarray | None = None
+    error: str | None = None
+
+    @property
+    def relocalized(self) -> bool:
+        """A tracking attempt was rejected and the frame localized in full."""
+        return self.attempted and not self.tracked and self.error is None
+
+    def localize_result(self) -> LocalizeResult | None:
+        """The frame's LocalizeResult (numpy), or None for a flagged frame."""
+        if self.error is not None:
+            return None
+        return LocalizeResult(**{f.name: getattr(self, f.name)
+                                 for f in dataclasses.fields(LocalizeResult)})
+
+
+def as_track_result(name: str, r: LocalizeResult, **extra) -> TrackResult:
+    """A LocalizeResult (numpy or device values) with the tracking fields ``extra``."""
+    r = jax.device_get(r)
+    vals = {f.name: np.asarray(getattr(r, f.name)) for f in dataclasses.fields(LocalizeResult)}
+    for k, v in vals.items():
+        if v.ndim == 0:
+            vals[k] = v.item()
+    return TrackResult(name=name, **vals, **extra)
+
+
+def flagged(name: str, error: str, k: int, latency_s: float) -> TrackResult:
+    """A frame with no result (unreadable, or blank): success False, verdict failed."""
+    nan = float("nan")
+    return TrackResult(name=name, R=np.eye(3), t=np.zeros(3), success=False, fallback=False,
+                       n_inliers=0, n_matches=0, retrieved=np.full(k, -1, np.int32),
+                       R_first=np.eye(3), t_first=np.zeros(3), n_inliers_first=0,
+                       n_inliers_guided=-1, n_rendered=0, n_rendered_first=0,
+                       inlier_coverage=nan, inlier_ray_angle_deg=nan, inlier_depth_spread=nan,
+                       latency_s=latency_s, error=error)
+
+
+def stream_inputs(frames: Sequence[Any], K: Any, dist: Any = None
+                  ) -> tuple[list[Any], list[np.ndarray], list[np.ndarray | None]]:
+    """(frames, K per frame [3, 3], dist per frame or None) of a stream: one K [3, 3] for
+    all frames or one per frame [N, 3, 3]; dist None, one [4]/[5] for all or one per frame
+    [N, 5]. VrsError naming the argument otherwise (a frame's own K and dist are checked
+    with it)."""
+    if isinstance(frames, (str, Path, np.ndarray)) or not isinstance(frames, Sequence):
+        raise VrsError("track: frames must be a list of image paths or arrays, got "
+                       f"{type(frames).__name__}")
+    n = len(frames)
+    if n == 0:
+        raise VrsError("track: no frames")
+
+    def per_frame(x, ndim, what):
+        if isinstance(x, (list, tuple)) and len(x) and (x[0] is None
+                                                          or np.ndim(x[0]) == ndim):
+            if len(x) != n:  # one per frame (None: no distortion)
+                raise VrsError(f"track: {n} frames but {len(x)} {what}")
+            return [None if v is None else np.asarray(v, np.float64) for v in x]
+        a = np.asarray(x, np.float64)
+        if a.ndim == ndim:
+            return [a] * n
+        if a.ndim == ndim + 1:
+            if len(a) != n:
+                raise VrsError(f"track: {n} frames but {len(a)} {what}")
+            return list(a)
+        raise VrsError(f"track: {what} must be one or one per frame, got shape {a.shape}")
+
+    try:
+        Ks = per_frame(K, 2, "K")
+        dists = [None] * n if dist is None else per_frame(dist, 1, "distortions")
+    except (TypeError, ValueError) as e:
+        raise VrsError(f"track: K and dist must be numbers ({e})") from None
+    if any(k_.shape != (3, 3) for k_ in Ks):
+        raise VrsError(f"track: K must be [3, 3] (or [N, 3, 3]), got {Ks[0].shape}")
+    return list(frames), Ks, dists
+
+
+def frame_image(frame: Any) -> np.ndarray:
+    """A frame as an array: read from its file (VrsError naming it), or the array itself."""
+    if isinstance(frame, (str, Path)):
+        return read_gray(frame)
+    return np.asarray(frame)
+
+
+def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dist: Any,
+                 prepare: Callable[..., Query], full: Callable[[Query], LocalizeResult],
+                 names: Sequence[str] | None = None, progress: bool = False,
+                 step: Callable[..., LocalizeResult] = track_step) -> list[TrackResult]:
+    """Track a stream: per frame a :class:`TrackResult`, in order (module docstring).
+
+    Args:
+      m, cfg: the map and the query-time config (``cfg.track``: the tracking settings).
+      frames: image paths or arrays, in stream order; K, dist: see :func:`stream_inputs`.
+      prepare: ``prepare(image, K, dist, name) -> Query`` (VrsError for a bad frame);
+        full: ``full(query) -> LocalizeResult``, the full localization (``Localizer``'s,
+        with its descriptor cache).
+      names: per frame (default: the path, or "frame i").
+      progress: a progress bar.
+    """
+    frames, Ks, dists = stream_inputs(frames, K, dist)
+    if names is not None and len(names) != len(frames):
+        raise VrsError(f"track: {len(frames)} frames but {len(names)} names")
+    tc = cfg.track
+    scale = map_scale(m)
+    k = min(cfg.top_k, m.egm.num_images)
+    history: list[tuple[int, np.ndarray, np.ndarray]] = []
+    out: list[TrackResult] = []
+    bar = tqdm(range(len(frames)), desc=f"track ({cfg.source})", unit="frame",
+               disable=not progress)
+    for i in bar:
+        t0 = time.perf_counter()
+        f = frames[i]
+        name = names[i] if names is not None else (str(f) if isinstance(f, (str, Path))
+                                                   else f"frame {i}")
+        try:
+            gray = frame_image(f)
+            q = prepare(gray, Ks[i], dists[i], name)
+        except VrsError as e:
+            out.append(flagged(name, str(e), k, time.perf_counter() - t0))
+            continue
+        n_kp = int(np.sum(np.asarray(q.mask)))
+        if n_kp < cfg.pnp.min_inliers:
+            out.append(flagged(name, f"{name}: {n_kp} keypoints, fewer than PnP needs inliers "
+                               f"({cfg.pnp.min_inliers}): a blank or featureless frame", k,
+                               time.perf_counter() - t0))
+            continue
+        pred = predict_pose(history, i, tc.max_gap)
+        extra: dict[str, Any] = {"attempted": pred is not None}
+        r, reason = None, None
+        if pred is not None:
+            extra.update(R_pred=pred[0], t_pred=pred[1])
+            size = np.array([gray.shape[1], gray.shape[0]], np.float32)
+            r = jax.device_get(step(m, q, pred[0], pred[1], size, cfg))
+            conf, verdict = confidence_of(r, scale, cfg)
+            reason = rejection(r, verdict, pred[0], pred[1], scale, cfg)
+        if pred is not None and reason is None:
+            extra.update(tracked=True)
+        else:
+            r = jax.device_get(full(q))
+            conf, verdict = confidence_of(r, scale, cfg)
+            extra.update(rejected=reason)
+        res = as_track_result(name, r, confidence=conf, verdict=verdict,
+                              latency_s=time.perf_counter() - t0, **extra)
+        history = updated_history(history, i, res, scale, cfg)
+        out.append(res)
+    return out
+
+
+def confidence_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> tuple[float, str]:
+    """(confidence, verdict) of one result (localize.confidence)."""
+    conf, verdict = pose_confidence(result_fields([r]), scale, cfg.confidence)
+    return float(conf[0]), str(verdict[0])
+
+
+def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
+                    res: TrackResult, scale: float, cfg: LocalizeConfig
+                    ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """The last two good poses after frame ``i``: its pose is added when it is a PnP pose
+    whose verdict is in ``track.prior_verdicts``. A full localization that lands farther
+    from the prediction than the jump limits re-anchors the history (the stream jumped:
+    dropped frames, or the camera was moved): the new pose, preceded by a virtual pose one
+    frame before it that keeps the motion per frame of the old history (the camera most
+    likely kept moving as it did; zero motion with one good pose)."""
+    tc = cfg.track
+    if not res.success or res.verdict not in tc.prior_verdicts:
+        return history
+    R, t = np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
+    entry = (i, R, t)
+    if not res.tracked and res.R_pred is not None:
+        dt, dr = jump(R, t, res.R_pred, res.t_pred)
+        if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
+            if len(history) < 2:
+                return [entry]
+            (f0, R0, t0), (f1, R1, t1) = history[-2:]
+            w, u = se3_log(*relative_motion(R0, t0, R1, t1))
+            n = float(f1 - f0)
+            dR, dt_ = se3_exp(-w / n, -u / n)  # one frame of the old motion, backwards
+            return [(i - 1, dR @ R, dR @ t + dt_), entry]
+    return (history + [entry])[-2:]
