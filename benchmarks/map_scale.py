@@ -125,7 +125,7 @@ class SeriesScene:
 
     name: str
     rooms: int | None  # None: a real scene
-    scene: Any  # vrs_jax.data.scene.Scene
+    scene: Any  # vrs_jax.data.scene.Scene (None for a given EGM folder)
     egm_dir: Path
     given: bool  # the EGM folder was given (--series-egm): read only, never built into
     source_options: dict[str, Any]
@@ -348,10 +348,8 @@ def series_scenes(args, log: Callable[[str], None] = print) -> list[SeriesScene]
                            f"{', '.join(REAL_SERIES)}")
         spec = REAL_SERIES[name]
         opts = {"query_every": spec.query_every}
-        if name in given:
-            src = maps.load_map(given[name], require_ilm=False).source
-            scene = load_scene(src.format, Path(src.root), **opts)
-            out.append(SeriesScene(name, None, scene, given[name], True, opts))
+        if name in given:  # measured as it is: the dataset is not read
+            out.append(SeriesScene(name, None, None, given[name], True, opts))
             continue
         root = Path(args.data_root) if args.data_root else common.default_data_root()
         root = root.joinpath(*spec.parts)
