@@ -19,11 +19,11 @@ Cluster counts (:func:`cluster_counts`): 1; one per :data:`IMAGES_PER_CLUSTER` i
 paper's density on Aachen: 4,328 images in 16 clusters); and one per room (the clusters
 benchmark's division of the rooms scene; 16 images per NeRF here, far denser than the paper).
 
-The chess / Aachen figures are a FIT (:func:`fit_egm`): EGM bytes = a * images + b * kept
-keypoints, least squares on the measured points (relative residuals), its error reported on
-each measured point and on the largest one when fitted without it (c: the vocabulary and the
-npz container, a per image: poses, intrinsics, global descriptor; b per kept keypoint: its
-position, scale, angle, point link and its share of the 3D points).
+The chess / Aachen figures are a FIT (:func:`fit_egm`): EGM bytes = c + a * images + b *
+kept keypoints (c: the vocabulary and the npz container; a per image: pose, intrinsics,
+global descriptor; b per kept keypoint: position, scale, angle, point link and its share of
+the 3D points), each slope fitted on the measured parts it counts, its error reported on each
+measured total and on the largest one when fitted without it.
 """
 
 from __future__ import annotations
@@ -196,30 +196,53 @@ def measure(s: SeriesScene, cfg: maps.MapConfig, work: Path, train: bool,
 # ----------------------------------------------------------------------------- the fit
 
 
+# egm.npz parts (vrs_jax.egm.map.PARTS) by what their size grows with.
+PER_IMAGE_PARTS = ("poses+intrinsics", "global descriptors")
+PER_KEYPOINT_PARTS = ("keypoints", "links", "points3d")
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(intercept, slope) of y ~ c + s x, least squares on residuals relative to y."""
+    X = np.stack([np.ones_like(x), x], axis=1) / y[:, None]
+    (c, slope), *_ = np.linalg.lstsq(X, np.ones_like(y), rcond=None)
+    return float(c), float(slope)
+
+
+def _fit_parts(rows: list[dict[str, Any]]) -> np.ndarray:
+    """[c, a, b] of egm.npz = c + a * images + b * kept keypoints, a and b each fitted on the
+    parts that grow with them (images and kept keypoints grow together along the series, so
+    a fit of the total alone cannot tell them apart); c: their intercepts plus the mean of the
+    rest (the npz container)."""
+    n = np.array([r["images"] for r in rows], np.float64)
+    k = np.array([r["kept_keypoints"] for r in rows], np.float64)
+    part = lambda names: np.array([sum(r["egm_parts"].get(p, 0) for p in names)  # noqa: E731
+                                   for r in rows], np.float64)
+    ci, a = _line(n, part(PER_IMAGE_PARTS))
+    ck, b = _line(k, part(PER_KEYPOINT_PARTS))
+    rest = np.array([r["egm"] for r in rows], np.float64) - part(PER_IMAGE_PARTS) - part(
+        PER_KEYPOINT_PARTS)
+    return np.array([ci + ck + float(rest.mean()), a, b])
+
+
 def fit_egm(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """egm.npz bytes = c + a * images + b * kept keypoints (c: the vocabulary and the npz
-    container), least squares on relative residuals over the measured ``rows`` (at least 3).
-    Returns c, a (bytes per image), b (bytes per kept keypoint), ``errors`` (fit / measured
-    - 1 per row, in order), ``max_abs_error`` and ``holdout`` (the largest row predicted by
-    the fit of the others: its error; None with fewer than 4 rows)."""
+    """egm.npz bytes = c + a * images + b * kept keypoints (:func:`_fit_parts`: a on the
+    per-image parts, b on the per-keypoint parts, c the vocabulary and the npz container),
+    fitted on the measured ``rows`` (at least 3; each with ``egm`` and ``egm_parts``).
+    Returns c, a (bytes per image), b (bytes per kept keypoint), ``errors`` (fit of the total
+    / measured total - 1 per row, in order), ``max_abs_error`` and ``holdout`` (the largest
+    row predicted by the fit of the others: its error; None with fewer than 4 rows)."""
     if len(rows) < 3:
         raise VrsError("the fit needs at least 3 measured scenes")
-
-    def solve(rs):
-        X = np.array([[1.0, r["images"], r["kept_keypoints"]] for r in rs], np.float64)
-        y = np.array([r["egm"] for r in rs], np.float64)
-        coef, *_ = np.linalg.lstsq(X / y[:, None], np.ones(len(rs)), rcond=None)
-        return coef
 
     def err(coef, r):
         return float((coef @ [1.0, r["images"], r["kept_keypoints"]]) / r["egm"] - 1.0)
 
-    coef = solve(rows)
+    coef = _fit_parts(rows)
     errors = [err(coef, r) for r in rows]
     holdout = None
     if len(rows) >= 4:
         big = max(range(len(rows)), key=lambda i: rows[i]["images"])
-        c2 = solve([r for i, r in enumerate(rows) if i != big])
+        c2 = _fit_parts([r for i, r in enumerate(rows) if i != big])
         holdout = {"scene": rows[big]["scene"], "c": float(c2[0]), "a": float(c2[1]),
                    "b": float(c2[2]), "error": err(c2, rows[big])}
     return {"c_bytes": float(coef[0]), "a_bytes_per_image": float(coef[1]),

@@ -84,16 +84,23 @@ def test_fit_error_is_computed_from_the_measured_points(series):
     assert large[("7scenes chess", "test")]["images"] == 4000
 
 
+def _row(i, n, k, scale=1.0):
+    parts = {"poses+intrinsics": 50 * n, "global descriptors": 1000 + 250 * n,
+             "keypoints": 3 * k, "links": 2 * k, "points3d": 2 * k, "container": 4000}
+    parts = {p: v * scale for p, v in parts.items()}
+    return {"scene": f"s{i}", "images": n, "kept_keypoints": k, "egm_parts": parts,
+            "egm": sum(parts.values())}
+
+
 def test_fit_recovers_a_linear_law_and_reports_a_misfit():
-    rows = [{"scene": f"s{i}", "images": n, "kept_keypoints": k,
-             "egm": 5000 + 300 * n + 7 * k} for i, (n, k) in enumerate(
-                 [(10, 2000), (40, 9000), (160, 30000), (640, 150000)])]
+    sizes = [(10, 2000), (40, 7000), (160, 30000), (640, 110000)]
+    rows = [_row(i, n, k) for i, (n, k) in enumerate(sizes)]
     fit = map_scale.fit_egm(rows)
     assert fit["c_bytes"] == pytest.approx(5000, rel=1e-6)
     assert fit["a_bytes_per_image"] == pytest.approx(300, rel=1e-6)
     assert fit["b_bytes_per_keypoint"] == pytest.approx(7, rel=1e-6)
     assert fit["max_abs_error"] < 1e-9 and abs(fit["holdout"]["error"]) < 1e-9
-    rows[-1]["egm"] *= 1.5  # the largest point off the law: the fit and the holdout see it
+    rows[-1] = _row(3, *sizes[-1], scale=1.5)  # the largest point off the law: both see it
     bad = map_scale.fit_egm(rows)
     assert bad["max_abs_error"] > 0.01
     assert bad["holdout"]["scene"] == "s3" and bad["holdout"]["error"] == pytest.approx(
