@@ -20,8 +20,9 @@ from flax import struct, traverse_util
 
 from vrs_jax import fileio
 from vrs_jax.errors import VrsError
+from vrs_jax.nerf.clusters import cluster_cameras
 from vrs_jax.nerf.config import NerfConfig
-from vrs_jax.nerf.model import Field, init_params, select_field
+from vrs_jax.nerf.model import Field, init_params, init_stacked_params, select_field
 
 # 2: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
 FORMAT_VERSION = 2
@@ -70,6 +71,28 @@ class ILM:
         d2 = np.sum((np.asarray(centers)[:, None] - np.asarray(self.cluster_centers)[None]) ** 2,
                     axis=-1)
         return np.argmin(d2, axis=1).astype(np.int32)
+
+
+def untrained(cfg: NerfConfig, image_names: tuple[str, ...], camera_centers: np.ndarray,
+              seed: int = 0) -> ILM:
+    """An ILM of ``cfg.n_clusters`` NeRFs at their initial parameters: the shapes and dtypes
+    a trained one has (the cameras clustered as training clusters them), so :func:`to_bytes`
+    gives it exactly the bytes of a trained ILM of the same config and images (what
+    ``benchmarks.map_size --series`` measures for scenes it does not train). Normalisation,
+    background and near/far are placeholders (zeros / ones), not usable for rendering.
+
+    camera_centers: [N, 3] world centres of the N reference images ``image_names``.
+    """
+    c, n = cfg.n_clusters, len(image_names)
+    cl = cluster_cameras(np.asarray(camera_centers), c, cfg.cluster_overlap, seed=cfg.seed,
+                         method=cfg.cluster_method)
+    fields = Field(params=init_stacked_params(jax.random.key(seed), cfg, c),
+                   center=jnp.zeros((c, 3), jnp.float32), scale=jnp.ones((c,), jnp.float32),
+                   background=jnp.zeros((c, 3), jnp.float32))
+    return ILM(fields=fields, cluster_centers=jnp.asarray(cl.centers, jnp.float32),
+               image_cluster=jnp.asarray(cl.primary), membership=jnp.asarray(cl.membership),
+               near=jnp.ones((n,), jnp.float32), far=jnp.ones((n,), jnp.float32),
+               image_names=tuple(image_names), config=cfg)
 
 
 def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
