@@ -1059,3 +1059,44 @@ def test_localizer_keeps_the_config_source_and_checks_its_arguments(tiny_map):
         localize.Localizer(m, "test").warmup(-5, 3)
     with pytest.raises(VrsError, match="seed"):
         SyntheticConfig(seed=-1)
+
+
+def test_a_missing_query_image_is_flagged_not_dropped_or_fatal(tmp_path):
+    """A query list naming one missing image stopped the whole run; a 7-Scenes test frame
+    whose image was deleted vanished from the queries (its pose file skipped with a
+    warning), so recall was computed without it. Both are now queries that localizing flags
+    ("image not found"); a list none of whose images exists is still one error line."""
+    import cv2
+
+    from vrs_jax.data.images import read_gray
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.data.readers.query_list import query_scene
+
+    img = tmp_path / "images"
+    img.mkdir()
+    cv2.imwrite(str(img / "a.png"), np.zeros((6, 8, 3), np.uint8))
+    ql = tmp_path / "q.txt"
+    ql.write_text("a.png PINHOLE 8 6 10 11 4 3\nb.png PINHOLE 8 6 10 11 4 3\n")
+    s = query_scene(ql, img)
+    assert s.names == ["a.png", "b.png"]
+    with pytest.raises(VrsError, match="image not found"):
+        read_gray(s.image_paths[1])
+    ql.write_text("b.png PINHOLE 8 6 10 11 4 3\n")
+    with pytest.raises(VrsError, match="image of query b.png"):
+        query_scene(ql, img)
+
+    root = tmp_path / "seven"
+    pose = "1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
+    for seq in ("seq-01", "seq-02"):
+        (root / seq).mkdir(parents=True)
+        for k in range(3):
+            cv2.imwrite(str(root / seq / f"frame-{k:06d}.color.png"),
+                        np.full((6, 8, 3), 90, np.uint8))
+            (root / seq / f"frame-{k:06d}.pose.txt").write_text(pose)
+    (root / "TrainSplit.txt").write_text("sequence1\n")
+    (root / "TestSplit.txt").write_text("sequence2\n")
+    (root / "seq-02" / "frame-000001.color.png").unlink()
+    q = load_scene("7scenes", root).queries()
+    assert "seq-02/frame-000001.color.png" in q.names and len(q) == 3
+    with pytest.raises(VrsError, match="image not found"):
+        read_gray(q.image_paths[q.names.index("seq-02/frame-000001.color.png")])
