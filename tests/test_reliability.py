@@ -1100,3 +1100,30 @@ def test_a_missing_query_image_is_flagged_not_dropped_or_fatal(tmp_path):
     assert "seq-02/frame-000001.color.png" in q.names and len(q) == 3
     with pytest.raises(VrsError, match="image not found"):
         read_gray(q.image_paths[q.names.index("seq-02/frame-000001.color.png")])
+
+
+def test_ctrl_c_inside_a_host_callback_is_a_clean_stop(capsys):
+    """Ctrl-C during ``experiments.localize`` lands in OpenCV's RANSAC, a jax host callback,
+    and came back as an XLA runtime error: a traceback and exit status 1 (or, after the
+    "interrupted" line, a SIGSEGV in the interpreter's teardown). Both wrappings stop
+    cleanly now: exit status 130 and one line."""
+    from vrs_jax.errors import cli_main
+
+    class XlaRuntimeError(RuntimeError):
+        pass
+
+    def wrapped(_):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise XlaRuntimeError("INTERNAL: CpuCallback error") from e
+
+    def message_only(_):
+        raise XlaRuntimeError("INTERNAL: CpuCallback error: KeyboardInterrupt: <EMPTY MESSAGE>")
+
+    for fn in (wrapped, message_only):
+        assert cli_main(fn)(None) == 130
+        err = capsys.readouterr().err
+        assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    with pytest.raises(XlaRuntimeError):
+        cli_main(lambda _: (_ for _ in ()).throw(XlaRuntimeError("another failure")))(None)
