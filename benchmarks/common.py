@@ -516,6 +516,7 @@ def write_json(path: str | Path, doc: dict) -> Path:
     """Strict JSON (non-finite numbers as null), written atomically."""
     from vrs_jax import fileio
 
+    fileio.refuse_map_part(path)  # --json pointed into a map folder (its map.json)
     return fileio.write_json(path, doc)
 
 

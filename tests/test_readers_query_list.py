@@ -66,9 +66,12 @@ def test_query_scene(tmp_path):
     write_list(ql, ["q/a.png PINHOLE 8 6 10 11 4 3", "q/b.jpg SIMPLE_RADIAL 8 6 9 3 4 0.01"])
     with pytest.raises(VrsError, match=r"q\.txt:2: image q/b\.jpg is 6x8 but the list gives 8x6"):
         query_scene(ql, img)
-    # A listed image must exist.
+    # A missing listed image is a query that localizing flags (issue 23: every unreadable
+    # query is flagged while the others localize); none of them there is an error.
     write_list(ql, ["q/a.png PINHOLE 8 6 10 11 4 3", "q/c.png PINHOLE 8 6 10 11 4 3"])
-    with pytest.raises(VrsError, match=r"images/q/c\.png: image of query q/c\.png \(line 2"):
+    assert query_scene(ql, img).names == ["q/a.png", "q/c.png"]
+    write_list(ql, ["q/c.png PINHOLE 8 6 10 11 4 3", "q/d.png PINHOLE 8 6 10 11 4 3"])
+    with pytest.raises(VrsError, match=r"images/q/c\.png: image of query q/c\.png \(line 1"):
         query_scene(ql, img)
     write_list(ql, ["# nothing"])
     with pytest.raises(VrsError, match="no queries"):

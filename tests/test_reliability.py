@@ -900,3 +900,230 @@ def test_sigterm_waits_for_a_deferred_block_then_stops():
         with pytest.raises(Terminated):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(1.0)
+
+
+# ----------------------------------------------------------------------------- issue 23, re-sweep
+
+
+@pytest.mark.parametrize("item", [
+    "batch_size=0", "batch_size=-5", "lr_init=nan", "lr_init=inf", "lr_init=-1", "lr_final=0",
+    "hash_log2_table=40", "n_clusters=0", "num_samples_coarse=0", "net_width=0",
+    "max_steps=0", "checkpoint_every=0", "log_every=0", "eval_every=0", "render_chunk=0",
+    "eval_rays=0", "keep_checkpoints=0", "hash_levels=0", "adam_eps=nan", "norm_radius=0",
+    "near_far_percentiles=nan,99", "near_far_percentiles=99,1", "near_far_percentiles=1,2,3",
+    "cluster_overlap=-1", "patch_ray_fraction=1.5", "patch_ray_fraction=nan", "seed=-1",
+    "contraction=maybe", "name=zzz"])
+def test_set_values_out_of_range_are_one_line(item):
+    """Each of these ran before as a ZeroDivisionError or shape traceback, or trained a map
+    that silently never learned (lr nan, 3 steps: exit 0)."""
+    from vrs_jax.nerf.config import get_config, parse_overrides
+
+    with pytest.raises(VrsError) as e:
+        get_config("test", **parse_overrides([item]))
+    key = item.partition("=")[0]
+    assert key in str(e.value) and "\n" not in str(e.value)
+
+
+def test_set_values_in_range_still_pass():
+    from vrs_jax.nerf.config import CONFIGS, get_config, parse_overrides
+
+    assert all(get_config(n) is CONFIGS[n] for n in CONFIGS)
+    get_config("test", **parse_overrides(["patch_ray_fraction=0", "grad_max_norm=0",
+                                          "num_samples_fine=0", "lr_delay_steps=0",
+                                          "hash_log2_table=20", "near_far_percentiles=0,100"]))
+
+
+@pytest.mark.parametrize("edit", ["nerf batch_size 0", "null names", "null k_max",
+                                  "null files", "files sha256 int"])
+def test_hand_edited_map_json_values_are_one_line(edit, tiny_map, tmp_path):
+    from vrs_jax import maps
+
+    d = tmp_path / "map"
+    shutil.copytree(tiny_map, d, ignore=shutil.ignore_patterns("nerf"))
+    meta = json.loads((d / "map.json").read_text())
+    if edit == "nerf batch_size 0":
+        meta["config"]["nerf"]["batch_size"] = 0
+    elif edit == "files sha256 int":
+        meta["files"]["egm.npz"]["sha256"] = 5
+    else:
+        meta[edit.split()[1]] = None
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError) as e:
+        maps.load_map(d)
+    assert str(d / "map.json") in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("cmd,flags", [
+    ("train", ["--minutes", "nan"]), ("train", ["--minutes", "-1"]),
+    ("train", ["--query-every", "-1"]), ("train", ["--downscale", "0"]),
+    ("train_nerf", ["--minutes", "0"]), ("train_nerf", ["--near", "nan"]),
+    ("train_nerf", ["--far", "-1"]), ("train_nerf", ["--views", "0"]),
+    ("train_nerf", ["--num-processes", "0"]), ("localize", ["--top-k", "0"]),
+    ("evaluate", ["--query-every", "-2"])])
+def test_numeric_flags_out_of_range_are_refused_at_parsing(cmd, flags, capsys, tmp_path):
+    """--minutes nan/-1 ran 0 steps and exited 0; --views 0 wrote a nan PSNR."""
+    import importlib
+
+    main = importlib.import_module(f"vrs_jax.cli.{cmd}").main
+    base = {"localize": ["--map", str(tmp_path / "m"), "--out", str(tmp_path / "o")],
+            "evaluate": ["--results", str(tmp_path / "r.txt"), "--format", "nerf", "--root",
+                         str(tmp_path)]}.get(cmd, ["--format", "nerf", "--root", str(tmp_path),
+                                                   "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit) as e:
+        main([*base, *flags])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and flags[0] in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_outputs_never_replace_an_input_even_with_overwrite(tiny_map, small_synthetic_scene,
+                                                            tmp_path, capsys):
+    """Before: ``localize --out MAP --overwrite`` replaced the map by the run folder,
+    ``evaluate --json RESULTS --overwrite`` the results file, ``train_nerf --out MAP`` the
+    map's ilm.npz (the map then refused to load)."""
+    from vrs_jax.cli import build_egm, evaluate, localize, train_nerf
+
+    m = tmp_path / "map"
+    shutil.copytree(tiny_map, m)
+    res = tmp_path / "run" / "results.txt"
+    res.parent.mkdir()
+    res.write_text("seq-02/frame-000000.color.png 1 0 0 0 0 0 0\n")
+    scene = str(small_synthetic_scene)
+    before = snapshot(m, res.parent, small_synthetic_scene)
+    loc = ["--map", str(m), "--config", "test", "--mode", "real", "--quiet", "--overwrite"]
+    ev = ["--results", str(res), "--format", "7scenes", "--root", scene, "--overwrite"]
+    ds = ["--format", "7scenes", "--root", scene, "--config", "test", "--quiet"]
+    cases = [
+        (localize.main, [*loc, "--out", str(m)], m),
+        (localize.main, [*loc, "--out", str(tmp_path)], tmp_path),  # holds the map
+        (localize.main, [*loc, "--out", scene, "--format", "7scenes", "--root", scene], scene),
+        (localize.main, [*loc, "--out", str(m / "nerf")], m / "nerf"),
+        (evaluate.main, [*ev, "--json", str(res)], res),
+        (evaluate.main, [*ev, "--json", str(res.parent)], res.parent),
+        (evaluate.main, [*ev, "--json", str(m / "map.json")], m / "map.json"),
+        (train_nerf.main, [*ds, "--out", str(m), "--steps", "2"], m),
+        (train_nerf.main, [*ds, "--out", scene, "--steps", "2"], scene),
+        (train_nerf.main, [*ds, "--out", str(res.parent), "--steps", "2"], res.parent),
+        (build_egm.main, [*ds, "--out", str(tmp_path / "e"), "--export-colmap", scene,
+                          "--overwrite"], scene),
+    ]
+    for main, args, named in cases:
+        assert_one_error_line(main(args), capsys.readouterr().err, named)
+    assert snapshot(m, res.parent, small_synthetic_scene) == before
+    assert not (tmp_path / "e").exists()
+
+
+def test_reader_bad_files_are_one_line(tmp_path):
+    """A zero-byte or string poses_bounds.npy (EOFError, TypeError) and a transforms.json
+    with ``w: 0`` (ZeroDivisionError) were tracebacks."""
+    import cv2
+
+    from vrs_jax.data.readers import load_scene
+
+    llff = tmp_path / "llff"
+    (llff / "images").mkdir(parents=True)
+    cv2.imwrite(str(llff / "images" / "a.png"), np.zeros((6, 8, 3), np.uint8))
+    for content in (b"", None):
+        if content is None:
+            np.save(llff / "poses_bounds.npy", np.full((1, 17), "a"))
+        else:
+            (llff / "poses_bounds.npy").write_bytes(content)
+        with pytest.raises(VrsError, match="poses_bounds.npy"):
+            load_scene("llff", llff)
+    nerf = tmp_path / "nerf"
+    nerf.mkdir()
+    cv2.imwrite(str(nerf / "a.png"), np.zeros((6, 8, 3), np.uint8))
+    (nerf / "transforms.json").write_text(json.dumps({
+        "fl_x": 5, "cx": 4, "cy": 3, "w": 0, "h": 6,
+        "frames": [{"file_path": "a", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(VrsError, match="w, h must be positive"):
+        load_scene("nerf", nerf)
+
+
+def test_localizer_keeps_the_config_source_and_checks_its_arguments(tiny_map):
+    """``Localizer(m, cfg)`` replaced ``cfg.source = "real"`` by "render" (its ``source``
+    default), so ``experiments.localize --sequence --mode real`` rendered; a negative cache
+    size was accepted, ``warmup(-5, 3)`` was a numpy traceback."""
+    from vrs_jax import localize, maps
+    from vrs_jax.data.synthetic import SyntheticConfig
+
+    m = maps.load_map(tiny_map)
+    assert localize.Localizer(m, localize.get_config("test", source="real")).cfg.source == \
+        "real"
+    assert localize.Localizer(m, "test").cfg.source == "render"
+    assert localize.Localizer(m, "test", source="real").cfg.source == "real"
+    for mb in (-1, float("nan")):
+        with pytest.raises(VrsError, match="cache_mb"):
+            localize.Localizer(m, "test", cache_mb=mb)
+    with pytest.raises(VrsError, match="width must be an integer >= 1"):
+        localize.Localizer(m, "test").warmup(-5, 3)
+    with pytest.raises(VrsError, match="seed"):
+        SyntheticConfig(seed=-1)
+
+
+def test_a_missing_query_image_is_flagged_not_dropped_or_fatal(tmp_path):
+    """A query list naming one missing image stopped the whole run; a 7-Scenes test frame
+    whose image was deleted vanished from the queries (its pose file skipped with a
+    warning), so recall was computed without it. Both are now queries that localizing flags
+    ("image not found"); a list none of whose images exists is still one error line."""
+    import cv2
+
+    from vrs_jax.data.images import read_gray
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.data.readers.query_list import query_scene
+
+    img = tmp_path / "images"
+    img.mkdir()
+    cv2.imwrite(str(img / "a.png"), np.zeros((6, 8, 3), np.uint8))
+    ql = tmp_path / "q.txt"
+    ql.write_text("a.png PINHOLE 8 6 10 11 4 3\nb.png PINHOLE 8 6 10 11 4 3\n")
+    s = query_scene(ql, img)
+    assert s.names == ["a.png", "b.png"]
+    with pytest.raises(VrsError, match="image not found"):
+        read_gray(s.image_paths[1])
+    ql.write_text("b.png PINHOLE 8 6 10 11 4 3\n")
+    with pytest.raises(VrsError, match="image of query b.png"):
+        query_scene(ql, img)
+
+    root = tmp_path / "seven"
+    pose = "1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
+    for seq in ("seq-01", "seq-02"):
+        (root / seq).mkdir(parents=True)
+        for k in range(3):
+            cv2.imwrite(str(root / seq / f"frame-{k:06d}.color.png"),
+                        np.full((6, 8, 3), 90, np.uint8))
+            (root / seq / f"frame-{k:06d}.pose.txt").write_text(pose)
+    (root / "TrainSplit.txt").write_text("sequence1\n")
+    (root / "TestSplit.txt").write_text("sequence2\n")
+    (root / "seq-02" / "frame-000001.color.png").unlink()
+    q = load_scene("7scenes", root).queries()
+    assert "seq-02/frame-000001.color.png" in q.names and len(q) == 3
+    with pytest.raises(VrsError, match="image not found"):
+        read_gray(q.image_paths[q.names.index("seq-02/frame-000001.color.png")])
+
+
+def test_ctrl_c_inside_a_host_callback_is_a_clean_stop(capsys):
+    """Ctrl-C during ``experiments.localize`` lands in OpenCV's RANSAC, a jax host callback,
+    and came back as an XLA runtime error: a traceback and exit status 1 (or, after the
+    "interrupted" line, a SIGSEGV in the interpreter's teardown). Both wrappings stop
+    cleanly now: exit status 130 and one line."""
+    from vrs_jax.errors import cli_main
+
+    class XlaRuntimeError(RuntimeError):
+        pass
+
+    def wrapped(_):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise XlaRuntimeError("INTERNAL: CpuCallback error") from e
+
+    def message_only(_):
+        raise XlaRuntimeError("INTERNAL: CpuCallback error: KeyboardInterrupt: <EMPTY MESSAGE>")
+
+    for fn in (wrapped, message_only):
+        assert cli_main(fn)(None) == 130
+        err = capsys.readouterr().err
+        assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    with pytest.raises(XlaRuntimeError):
+        cli_main(lambda _: (_ for _ in ()).throw(XlaRuntimeError("another failure")))(None)

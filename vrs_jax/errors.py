@@ -52,29 +52,61 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs) -> int:
+        program = not args and not kwargs  # the program itself (main() reads sys.argv)
         try:
-            with sigterm_stops():
-                rc = fn(*args, **kwargs)
+            try:
+                with sigterm_stops():
+                    rc = fn(*args, **kwargs)
+            except Exception as e:
+                stop = _stop_in(e)  # Ctrl-C / SIGTERM raised inside a jax host callback
+                if stop is None:
+                    raise
+                raise stop from None
         except VrsError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
         except Terminated:
             print("terminated (SIGTERM); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
-            if not args and not kwargs:  # the program itself (main() reads sys.argv)
-                # the ``finally`` blocks have run (checkpoints closed); skip the interpreter's
-                # teardown, where tensorstore's callback threads print tracebacks of their
-                # closed event loop
-                sys.stdout.flush()
-                sys.stderr.flush()
-                os._exit(128 + signal.SIGTERM)
-            return 128 + signal.SIGTERM
+            return _stopped(128 + signal.SIGTERM, program)
         except KeyboardInterrupt:
-            print("interrupted", file=sys.stderr)
-            return 130
+            print("interrupted (Ctrl-C); what was saved is kept: re-run the same command to "
+                  "continue", file=sys.stderr)
+            return _stopped(130, program)
         return 0 if rc is None else int(rc)
 
     return wrapper
+
+
+def _stop_in(e: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (or :class:`Terminated`) that ``e`` wraps: a signal raised
+    inside a jax host callback (OpenCV's RANSAC in ``localize``) comes back as an XLA runtime
+    error whose cause, or only whose message, is the interrupt."""
+    seen = set()
+    x: BaseException | None = e
+    while x is not None and id(x) not in seen:
+        seen.add(id(x))
+        if isinstance(x, KeyboardInterrupt):
+            return x
+        x = x.__cause__ or x.__context__
+    text = str(e)
+    if "Terminated" in text and "vrs_jax" in text:
+        return Terminated()
+    if "KeyboardInterrupt" in text:
+        return KeyboardInterrupt()
+    return None
+
+
+def _stopped(code: int, program: bool) -> int:
+    """Exit status ``code`` of a clean stop. For the program itself, the ``finally`` blocks
+    have run (checkpoints closed, staging folders removed): the interpreter's teardown is
+    skipped, where tensorstore's callback threads print tracebacks of their closed event loop
+    and pycolmap's failure handler can dump a native stack (SIGSEGV) after a Ctrl-C."""
+    if program:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 class Terminated(KeyboardInterrupt):

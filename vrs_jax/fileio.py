@@ -204,7 +204,59 @@ def check_new(path: str | Path, overwrite: bool = False) -> Path:
     if taken and not overwrite:
         raise VrsError("already exists; pass --overwrite to replace it or choose another path",
                        p)
+    if taken:
+        refuse_map_part(p)
     return p
+
+
+MAP_WORK_FOLDERS = ("nerf", "sfm")
+"""Folders of a map folder that belong to the map (NeRF checkpoints, SfM work files)."""
+
+
+def map_folder_of(path: str | Path) -> Path | None:
+    """The vrs-jax map folder that ``path`` is, or lies in (a folder holding ``map.json``,
+    ``path`` itself or one of its parents), else None."""
+    p = Path(path).resolve()
+    for d in (p, *p.parents):
+        if (d / "map.json").is_file():
+            return d
+    return None
+
+
+def refuse_map_part(path: str | Path) -> None:
+    """VrsError when ``path`` is a vrs-jax map folder, one of its files or lies in its
+    :data:`MAP_WORK_FOLDERS`: no output of a run,
+    evaluation or benchmark replaces (part of) a map, even with --overwrite (only
+    ``experiments.train``/``build_egm`` write maps, as transactions)."""
+    d = map_folder_of(path)
+    if d is None:
+        return
+    rel = Path(path).resolve().relative_to(d).parts
+    if len(rel) > 1 and rel[0] not in MAP_WORK_FOLDERS:
+        return  # a run's own folder that happens to sit inside the map folder
+    if not rel:
+        raise VrsError("is a vrs-jax map folder (map.json); an output never replaces a map, "
+                       "even with --overwrite: choose another path", path)
+    raise VrsError(f"lies in the vrs-jax map folder {d}; an output never replaces part of a "
+                   "map, even with --overwrite: choose another path", path)
+
+
+def check_apart(out: str | Path, inputs: Iterable[str | Path | None]) -> Path:
+    """The output ``out`` must not be one of this run's ``inputs`` (a dataset root, a map, a
+    results file, a query list) nor a folder holding one: writing it would replace what the
+    run reads. Refused whatever --overwrite says (VrsError naming ``out`` and the input)."""
+    o = Path(out).resolve()
+    for inp in inputs:
+        if inp is None or str(inp) == "":
+            continue
+        i = Path(inp).resolve()
+        if o == i:
+            raise VrsError(f"is an input of this run ({inp}); an output never replaces an "
+                           "input, even with --overwrite: choose another path", out)
+        if o in i.parents:
+            raise VrsError(f"holds an input of this run ({inp}); an output never replaces an "
+                           "input, even with --overwrite: choose another path", out)
+    return Path(out)
 
 
 def pid_alive(pid: int) -> bool:

@@ -58,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     start_run(args)
     t0 = time.perf_counter()
     cfg = maps.get_config(args.config)
+    fileio.check_apart(args.out, [args.root])
+    if args.export_colmap:  # the COLMAP export never replaces the dataset or the map
+        fileio.check_apart(args.export_colmap, [args.root, args.out])
+        fileio.refuse_map_part(args.export_colmap)
     with fileio.folder_lock(args.out):  # one run per map folder
         out = fileio.check_writable(args.out)
         scene = load_scene_from_args(args, sfm_dir=out / "sfm")

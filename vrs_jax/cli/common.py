@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -60,6 +61,23 @@ def count_at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
+def positive_float(what: str = "value") -> Callable[[str], float]:
+    """An argparse ``type``: a finite number > 0 (``--minutes nan``, ``--minutes -1``,
+    ``--near inf`` are refused at parsing, not run as a no-op or an odd error later)."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: not a number") from None
+        if not math.isfinite(v) or v <= 0:
+            raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: must be a finite "
+                                             "number > 0")
+        return v
+
+    return parse
+
+
 def parse_opts(items: list[str]) -> dict:
     """``["key=value", ...]`` -> {key: int | float | bool | str}."""
     opts = {}
@@ -80,9 +98,9 @@ def add_scene_args(p: argparse.ArgumentParser, fmt: str | None = None,
                             "or images (a folder of unposed photos: SfM first)")
     p.add_argument("--root", required=required,
                    help="dataset root folder (its official layout)")
-    p.add_argument("--query-every", type=int, default=None, metavar="N",
+    p.add_argument("--query-every", type=count_at_least(0), default=None, metavar="N",
                    help="hold out every N-th image as a query (formats without a split)")
-    p.add_argument("--downscale", type=int, default=None, metavar="N",
+    p.add_argument("--downscale", type=count_at_least(1), default=None, metavar="N",
                    help="read images downscaled by N (intrinsics scaled to match)")
     p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                    help="further reader option, repeatable (e.g. --opt pgt=PATH for 7Scenes)")

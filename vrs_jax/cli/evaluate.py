@@ -22,7 +22,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from vrs_jax import fileio
-from vrs_jax.cli.common import parse_opts, prog, record_run, start_run
+from vrs_jax.cli.common import count_at_least, parse_opts, prog, record_run, start_run
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.eval.results import read_results
@@ -125,10 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", required=True, dest="fmt",
                    help="dataset format (7scenes, cambridge, aachen, nerf, llff, colmap)")
     p.add_argument("--root", required=True, help="dataset root folder")
-    p.add_argument("--query-every", type=int, default=None, metavar="N",
+    p.add_argument("--query-every", type=count_at_least(0), default=None, metavar="N",
                    help="hold out every N-th image as a query, as the localize run did "
                         "(formats without a split)")
-    p.add_argument("--downscale", type=int, default=None, metavar="N",
+    p.add_argument("--downscale", type=count_at_least(1), default=None, metavar="N",
                    help="image downscale factor used by the localize run")
     p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                    help="further reader option, repeatable (e.g. --opt pgt=PATH for 7Scenes)")
@@ -146,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start_run(args)
     if args.json:  # before any work: a folder that cannot take the report fails now
+        fileio.check_apart(args.json, [args.results, args.root])
+        if Path(args.json).is_dir():
+            raise VrsError("is a folder; --json names the file to write", args.json)
         if not Path(args.json).parent.is_dir():
             raise VrsError("output folder not found", Path(args.json).parent)
         fileio.check_writable(Path(args.json).parent)

@@ -39,6 +39,7 @@ from vrs_jax import fileio, localize, maps
 from vrs_jax.cli.common import (
     HelpFormatter,
     add_scene_args,
+    count_at_least,
     load_scene_from_args,
     prog,
     record_run,
@@ -75,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rendered patch size P (render mode; default: the map's)")
     p.add_argument("--literal", action="store_true",
                    help="paper-literal patches: axis-aligned whole pixels, no scale/rotation")
-    p.add_argument("--top-k", type=int, default=None, help="retrieved reference images")
+    p.add_argument("--top-k", type=count_at_least(1), default=None,
+                   help="retrieved reference images")
     p.add_argument("--full-sampling", action="store_true",
                    help="render with coarse+fine sampling instead of the depth-guided interval")
     p.add_argument("--sequence", action="store_true",
@@ -172,6 +174,8 @@ def run(args, argv: list[str] | None = None) -> dict:
     start_run(args)
     t_start = time.perf_counter()
     out = Path(args.out)
+    fileio.check_apart(out, [args.map, args.root, args.images, args.queries])
+    fileio.refuse_map_part(out)  # a run never replaces a map, even with --overwrite
     with fileio.folder_lock(out):
         fileio.check_new(out, args.overwrite)
         with fileio.staged_folder(out) as stage:
@@ -197,6 +201,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
     m = maps.load_map(args.map, descriptors=args.mode != "render")
     cfg = make_config(m, args)
     queries = query_scene(m, args, out / "sfm")
+    # the map's own dataset (its root recorded in the map) must not be replaced either
+    fileio.check_apart(args.out, [queries.root, m.source.root or None])
     tracks = None
     if args.sequence:
         if args.report:

@@ -22,6 +22,7 @@ from vrs_jax.cli.common import (
     add_scene_args,
     count_at_least,
     load_scene_from_args,
+    positive_float,
     prog,
     record_run,
     scene_opts,
@@ -44,7 +45,7 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
     p.add_argument("--steps", type=count_at_least(1), default=None,
                    help="NeRF training steps, also the lr schedule's length (default: the "
                         "config's; a larger value continues a finished map)")
-    p.add_argument("--minutes", type=float, default=None,
+    p.add_argument("--minutes", type=positive_float("minutes"), default=None,
                    help="wall-clock cap on this run's NeRF training (re-run to continue)")
     p.add_argument("--clusters", type=count_at_least(1), default=None,
                    help="number of NeRF clusters (default: the config's)")
@@ -77,6 +78,7 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
     t0 = time.perf_counter()
     cfg = map_config(args)
     out = Path(args.out)
+    fileio.check_apart(out, [args.root])
     with fileio.folder_lock(out):  # one run per map folder
         fileio.check_writable(out)  # before any work starts
         scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")

@@ -31,6 +31,7 @@ from vrs_jax.cli.common import (
     add_scene_args,
     count_at_least,
     load_scene_from_args,
+    positive_float,
     prog,
     record_run,
     start_run,
@@ -50,11 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="number of clusters (K-means)")
     p.add_argument("--steps", type=count_at_least(1), default=None,
                    help="total training steps")
-    p.add_argument("--minutes", type=float, default=None,
+    p.add_argument("--minutes", type=positive_float("minutes"), default=None,
                    help="wall-clock budget of this run (compilation included)")
-    p.add_argument("--near", type=float, default=None, help="near bound override (t = depth)")
-    p.add_argument("--far", type=float, default=None, help="far bound override")
-    p.add_argument("--views", type=int, default=None, metavar="N",
+    p.add_argument("--near", type=positive_float("near bound"), default=None,
+                   help="near bound override (t = depth)")
+    p.add_argument("--far", type=positive_float("far bound"), default=None,
+                   help="far bound override")
+    p.add_argument("--views", type=count_at_least(1), default=None, metavar="N",
                    help="render at most N held-out views (default: all; training views if "
                         "there are no held-out ones)")
     p.add_argument("--no-resume", action="store_true", help="ignore existing checkpoints")
@@ -71,10 +74,10 @@ def add_distributed_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                    help="address of process 0's coordinator service, the same for every "
                         "process (default: $JAX_COORDINATOR_ADDRESS)")
-    g.add_argument("--num-processes", type=int, default=None, metavar="N",
+    g.add_argument("--num-processes", type=count_at_least(1), default=None, metavar="N",
                    help="number of processes (default: $JAX_NUM_PROCESSES, else 1: a "
                         "single-process run)")
-    g.add_argument("--process-id", type=int, default=None, metavar="I",
+    g.add_argument("--process-id", type=count_at_least(0), default=None, metavar="I",
                    help="this process's index 0..N-1 (default: $JAX_PROCESS_ID)")
     g.add_argument("--local-devices", default=None, metavar="IDS",
                    help="comma-separated local device ids this process uses (e.g. 0 for one "
@@ -111,6 +114,26 @@ def main(argv: list[str] | None = None) -> int:
         return train_into(args, argv, multi)
 
 
+OWN_ENTRIES = ("checkpoints", "ilm.npz", "metrics.json", "renders")
+"""What a train_nerf --out holds (besides its run records ``run*.json``)."""
+
+
+def check_nerf_out(out: Path, root: str | None) -> None:
+    """--out must be new, empty or an earlier train_nerf output (resumed): never the dataset,
+    a folder holding it, a map folder (whose ilm.npz this run would replace) or any other
+    folder with files of its own."""
+    fileio.check_apart(out, [root])
+    fileio.refuse_map_part(out)
+    if out.is_dir():
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in OWN_ENTRIES
+                         and not (p.name.startswith("run") and p.name.endswith(".json"))
+                         and not p.name.endswith(".tmp"))
+        if foreign:
+            raise VrsError(f"folder holds files that are not a train_nerf output "
+                           f"({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}); "
+                           "choose a new or empty --out", out)
+
+
 def train_into(args: argparse.Namespace, argv: list[str] | None, multi: bool) -> int:
     """Train into ``args.out`` (checkpoints, ilm.npz, renders, metrics.json); 0 on success."""
     from vrs_jax.nerf import distributed, render
@@ -123,6 +146,7 @@ def train_into(args: argparse.Namespace, argv: list[str] | None, multi: bool) ->
         overrides["n_clusters"] = args.clusters
     cfg = get_config(args.config, **overrides)
     out = Path(args.out)
+    check_nerf_out(out, args.root)
     if args.no_resume and (out / "checkpoints").exists():
         raise VrsError("--no-resume given but the folder holds checkpoints; use another --out",
                        out / "checkpoints")

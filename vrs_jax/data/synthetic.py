@@ -129,6 +129,8 @@ class SyntheticConfig:
             raise VrsError("camera path must stay 0.5 m inside the room walls")
         if self.n_rooms < 1:
             raise VrsError("n_rooms must be >= 1")
+        if not 0 <= self.seed < 2**32:
+            raise VrsError(f"seed must be an integer in 0..2^32-1, got {self.seed}")
         if not 0.0 <= self.query_arc <= 1.0:
             raise VrsError(f"query_arc must be in [0, 1] (a fraction of the loop), got "
                            f"{self.query_arc}")

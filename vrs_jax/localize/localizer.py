@@ -18,6 +18,7 @@ its query axis sharded over the devices: :func:`~vrs_jax.localize.batch.localize
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -69,9 +70,13 @@ class Localizer:
     """
 
     def __init__(self, map_or_dir: Map | str | Path, cfg: LocalizeConfig | str | None = None,
-                 source: str | None = "render", cache_mb: float = 0.0,
+                 source: str | None = None, cache_mb: float = 0.0,
                  devices: Sequence[Any] | int | None = None):
         self.cfg = _resolve_config(cfg, source)
+        if isinstance(cache_mb, bool) or not isinstance(cache_mb, (int, float)) \
+                or not math.isfinite(cache_mb) or cache_mb < 0:
+            raise VrsError(f"cache_mb must be a finite number >= 0 (0: no cache), got "
+                           f"{cache_mb!r}")
         self.cache = (DescriptorCache(cache_mb) if cache_mb > 0 and self.cfg.source == "render"
                       else None)
         if isinstance(map_or_dir, Map):
@@ -238,6 +243,9 @@ class Localizer:
         """Compile query preparation and ``localize`` for images of this size (a blank image:
         no keypoints, so a fallback result, with the shapes of any query); with ``track``
         also the tracking step of :meth:`track`."""
+        for what, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise VrsError(f"warmup: {what} must be an integer >= 1, got {v!r}")
         f = float(max(width, height))
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
         q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")

@@ -204,6 +204,19 @@ def read_meta(folder: str | Path) -> dict[str, Any]:
     for key in ("config", "source", "names", "k_max", "files"):
         if key not in meta:
             raise VrsError(f"map metadata lacks {key!r}", p)
+    # the kinds of the top-level fields (a hand-edited file: one line, not a TypeError)
+    names = meta["names"]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise VrsError("map metadata 'names' must be a list of image names", p)
+    k_max = meta["k_max"]
+    if isinstance(k_max, bool) or not isinstance(k_max, int) or k_max < 1:
+        raise VrsError(f"map metadata 'k_max' must be an integer >= 1, got {k_max!r}", p)
+    files = meta["files"]
+    if not isinstance(files, dict) or not all(
+            isinstance(r, dict) and isinstance(r.get("sha256"), str)
+            and isinstance(r.get("bytes"), int) for r in files.values()):
+        raise VrsError("map metadata 'files' must map each file name to its sha256 and bytes",
+                       p)
     return meta
 
 

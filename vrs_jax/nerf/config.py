@@ -28,6 +28,31 @@ from vrs_jax.errors import VrsError
 ENCODINGS = ("ipe", "hashgrid")
 CLUSTER_METHODS = ("kmeans", "grid")  # nerf/clusters.py METHODS
 
+# Valid ranges of NerfConfig's numeric fields (checked on construction).
+_INT_AT_LEAST = {
+    "net_depth": 1, "net_width": 1, "skip_layer": 0, "net_depth_condition": 0,
+    "net_width_condition": 1, "min_deg_point": 0, "max_deg_point": 0, "deg_view": 0,
+    "hash_levels": 1, "hash_features": 1, "hash_base_res": 1, "hash_max_res": 1,
+    "num_samples_coarse": 1, "num_samples_fine": 0, "batch_size": 1, "lr_delay_steps": 0,
+    "max_steps": 1, "n_clusters": 1, "patch_pool_max_rays": 0, "render_chunk": 1,
+    "log_every": 1, "eval_every": 1, "eval_rays": 1, "checkpoint_every": 1,
+    "keep_checkpoints": 1, "seed": 0, "hash_log2_table": 1,
+}
+_MAX_LOG2_TABLE = 24  # 2^24 entries x 16 levels x 2 features: 2 GB of float32 per cluster
+_INF = math.inf
+# field: (low, high, low excluded, high excluded)
+_FLOAT_RANGES = {
+    "hash_init_scale": (0.0, _INF, True, False), "resample_padding": (0.0, _INF, False, False),
+    "density_bias": (-_INF, _INF, False, False), "rgb_padding": (0.0, 0.5, False, True),
+    "density_noise": (0.0, _INF, False, False), "lr_init": (0.0, _INF, True, False),
+    "lr_final": (0.0, _INF, True, False), "lr_delay_mult": (0.0, 1.0, True, False),
+    "adam_b1": (0.0, 1.0, False, True), "adam_b2": (0.0, 1.0, False, True),
+    "adam_eps": (0.0, _INF, True, False), "grad_max_norm": (0.0, _INF, False, False),
+    "coarse_loss_mult": (0.0, _INF, False, False), "norm_radius": (0.0, _INF, True, False),
+    "near_far_margin": (0.0, 1.0, False, True), "patch_ray_fraction": (0.0, 1.0, False, False),
+    "cluster_overlap": (0.0, _INF, False, False),
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class NerfConfig:
@@ -140,6 +165,45 @@ class NerfConfig:
         if self.cluster_method not in CLUSTER_METHODS:
             raise VrsError(f"unknown cluster method {self.cluster_method!r}; choose from "
                            f"{', '.join(CLUSTER_METHODS)}")
+        self._check_numbers()
+
+    def _check_numbers(self) -> None:
+        """Every numeric field in its valid range (``--set batch_size=0``, ``lr_init=nan``,
+        ``hash_log2_table=40`` and a hand-edited map.json fail here, in one line, instead of
+        as a ZeroDivisionError, a shape error or a map that silently never trains)."""
+
+        def bad(key: str, want: str) -> VrsError:
+            return VrsError(f"NeRF config field {key} = {getattr(self, key)!r}: must be {want}")
+
+        for key, lo in _INT_AT_LEAST.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise bad(key, f"an integer >= {lo}")
+        if not 1 <= self.hash_log2_table <= _MAX_LOG2_TABLE:
+            raise bad("hash_log2_table", f"an integer in 1..{_MAX_LOG2_TABLE} (2^T entries "
+                                         "per level; Instant-NGP uses 14-24)")
+        if self.hash_max_res < self.hash_base_res:
+            raise bad("hash_max_res", f">= hash_base_res ({self.hash_base_res})")
+        if self.max_deg_point < self.min_deg_point:
+            raise bad("max_deg_point", f">= min_deg_point ({self.min_deg_point})")
+        for key, (lo, hi, lo_open, hi_open) in _FLOAT_RANGES.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v < lo or (lo_open and v == lo) or v > hi or (hi_open and v == hi):
+                if hi == _INF and lo == -_INF:
+                    want = "a finite number"
+                elif hi == _INF:
+                    want = f"a finite number {'>' if lo_open else '>='} {lo:g}"
+                else:
+                    want = (f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}"
+                            f"{')' if hi_open else ']'}")
+                raise bad(key, want)
+        pct = self.near_far_percentiles
+        if (not isinstance(pct, tuple) or len(pct) != 2
+                or not all(isinstance(p, (int, float)) and math.isfinite(p) for p in pct)
+                or not 0 <= pct[0] < pct[1] <= 100):
+            raise bad("near_far_percentiles", "two percentiles LOW,HIGH with 0 <= LOW < HIGH "
+                                              "<= 100")
 
     def to_dict(self) -> dict[str, Any]:
         return configio.to_dict(self)
@@ -241,6 +305,9 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
             raise VrsError(f"--set expects key=value, got {item!r}")
         key, val = item.split("=", 1)
         key = key.strip().replace("-", "_")
+        if key == "name":
+            raise VrsError("--set name=... is not a setting: choose the named config with "
+                           "--config")
         configio.check_fields(NerfConfig, [key], "NeRF config field")
         cur = getattr(defaults, key)
         try:
@@ -254,6 +321,8 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
                 out[key] = float(val)
             elif isinstance(cur, tuple):
                 out[key] = tuple(float(v) for v in val.split(","))
+                if len(out[key]) != len(cur):
+                    raise ValueError(val)
             else:
                 out[key] = val
         except ValueError:

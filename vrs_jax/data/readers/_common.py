@@ -109,9 +109,10 @@ def image_sizes(paths: Sequence[str | Path], tolerate: Sequence[bool] | None = N
 
     Args:
       paths: N image files.
-      tolerate: [N] bool, the images (queries) whose unreadable file is not an error here: it
-        is flagged when the query is localized (reading it raises the VrsError that
-        ``localize_scene`` records) while the other queries are localized. Such an image gets
+      tolerate: [N] bool, the images (queries) whose unreadable or missing file is not an
+        error here (unless every image is missing: a wrong folder): it is flagged when the
+        query is localized (reading it raises the VrsError that ``localize_scene`` records)
+        while the other queries are localized. Such an image gets
         its ``declared`` size, else the size of the first readable image.
       declared: [N, 2] sizes the dataset gives for the images (e.g. a query list's).
     Raises:
@@ -120,17 +121,19 @@ def image_sizes(paths: Sequence[str | Path], tolerate: Sequence[bool] | None = N
     """
     sizes: list[tuple[int, int] | None] = []
     first_error: VrsError | None = None
+    n_missing = 0
     for i, p in enumerate(paths):
         try:
             sizes.append(image_size(p))
         except VrsError as e:
-            if tolerate is None or not tolerate[i] or not Path(p).is_file():
+            if tolerate is None or not tolerate[i]:
                 raise
             sizes.append(None if declared is None else tuple(int(x) for x in declared[i]))
             first_error = first_error or e
+            n_missing += not Path(p).is_file()
     known = [s for s in sizes if s is not None]
-    if len(known) < len(sizes) and not known:
-        raise first_error
+    if (len(known) < len(sizes) and not known) or (paths and n_missing == len(paths)):
+        raise first_error  # nothing readable, or every file missing: a wrong folder
     sizes = [known[0] if s is None else s for s in sizes]
     return np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
 

@@ -54,8 +54,11 @@ def load(root: str | Path, *, factor: int | None = None, query_every: int = 0,
         raise VrsError("poses_bounds.npy not found", pb_path)
     try:
         pb = np.load(pb_path, allow_pickle=False)
-    except (ValueError, OSError) as e:
-        raise VrsError(f"unreadable .npy file: {e}", pb_path) from None
+    except (ValueError, OSError, EOFError) as e:  # EOFError: a zero-byte file
+        raise VrsError(f"unreadable .npy file: {e or 'empty file'}", pb_path) from None
+    if pb.dtype.kind not in "biuf":
+        raise VrsError(f"expected a finite [N, 17] array of numbers, got dtype {pb.dtype}",
+                       pb_path)
     if pb.ndim != 2 or pb.shape[1] != 17 or not np.all(np.isfinite(pb)):
         raise VrsError(f"expected a finite [N, 17] array, got shape {pb.shape}", pb_path)
     factor = _default_factor(root) if factor is None else int(factor)

@@ -89,6 +89,9 @@ def _intrinsics(meta: dict, frame: dict, size: tuple[int, int], path: Path, wher
         if w0 is None or h0 is None:
             # No stated size: the intrinsics refer to the images as they are.
             w0, h0 = float(w), float(h)
+        if w0 <= 0 or h0 <= 0:
+            raise VrsError(f"{where}: image size w, h must be positive, got {w0:g}, {h0:g}",
+                           path)
         K = C.pinhole(flx, fly, w0 / 2 if cx is None else cx, h0 / 2 if cy is None else cy)
         if flx <= 0 or fly <= 0:
             raise VrsError(f"{where}: focal lengths must be positive", path)

@@ -90,10 +90,11 @@ def query_scene(list_path: str | Path, images_dir: str | Path) -> Scene:
       order: names as listed, K/dist from the list, sizes [N, 2] as read (equal to the list's),
       ``has_pose`` False and placeholder poses (identity, zero), ``is_query`` True.
     Raises:
-      VrsError for a malformed list (see :func:`read_query_list`), an empty list, a listed
-      image missing under ``images_dir`` (naming the image), or an image whose size differs
-      from the list's ``width height`` (naming the list line). An image that exists but
-      cannot be read (empty, not an image) is not an error here: localizing it flags it.
+      VrsError for a malformed list (see :func:`read_query_list`), an empty list, no listed
+      image under ``images_dir`` (naming the first), or an image whose size differs from the
+      list's ``width height`` (naming the list line). An image that is missing or cannot be
+      read (empty, not an image) is not an error here: localizing it flags it, with its
+      reason, while the other queries are localized.
     """
     list_path = Path(list_path)
     img_dir = require_dir(images_dir, "images folder")
@@ -101,10 +102,11 @@ def query_scene(list_path: str | Path, images_dir: str | Path) -> Scene:
     if not entries:
         raise VrsError("query list has no queries", list_path)
     paths = [img_dir / e.name for e in entries]
-    for e, p in zip(entries, paths, strict=True):
-        if not p.is_file():
-            raise VrsError(f"image of query {e.name} (line {e.line} of {list_path}) not found",
-                           p)
+    if not any(p.is_file() for p in paths):  # none there: a wrong --images folder
+        e = entries[0]
+        raise VrsError(f"image of query {e.name} (line {e.line} of {list_path}) not found "
+                       f"(nor any other listed image: is {img_dir} the right folder?)",
+                       paths[0])
     # an unreadable query image keeps the list's size; localizing it flags it
     sizes = C.image_sizes(paths, tolerate=[True] * len(paths),
                           declared=[(e.width, e.height) for e in entries])

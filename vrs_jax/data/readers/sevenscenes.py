@@ -161,7 +161,14 @@ def load(root: str | Path, *, pgt: str | Path | None = None, query_every: int = 
                         if (m := _FRAME.match(p.name)) and p.is_file())
         if not frames:
             raise VrsError("no frame-XXXXXX.color.png/.jpg images", root / seq)
-        orphans += orphan_poses(root / seq, {idx for idx, _ in frames})
+        lost = orphan_poses(root / seq, {idx for idx, _ in frames})
+        if query and has_split:
+            # a test frame whose image is gone stays a query (its pose is the ground truth):
+            # localizing it flags it ("image not found") and it counts as a failure
+            idxs = [_POSE.match(Path(o).name).group(1) for o in lost]
+            frames = sorted(frames + [(i, root / seq / f"frame-{i}.color.png") for i in idxs])
+        else:
+            orphans += lost
         for idx, img in frames:
             pose_f = img.with_name(f"frame-{idx}.pose.txt")
             R, t = read_pose_file(pose_f)
