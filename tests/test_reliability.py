@@ -1127,3 +1127,23 @@ def test_ctrl_c_inside_a_host_callback_is_a_clean_stop(capsys):
         assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
     with pytest.raises(XlaRuntimeError):
         cli_main(lambda _: (_ for _ in ()).throw(XlaRuntimeError("another failure")))(None)
+
+
+def test_write_checks_of_two_processes_do_not_collide(tmp_path, monkeypatch):
+    """Processes of one multi-process run check the same output folder at once: each uses its
+    own probe file, so one's clean-up never removes the other's (a race seen under load)."""
+    import os
+
+    from vrs_jax import fileio
+
+    seen = []
+    real_write = type(tmp_path).write_bytes
+
+    def write(self, data):
+        seen.append(self.name)
+        return real_write(self, data)
+
+    monkeypatch.setattr(type(tmp_path), "write_bytes", write)
+    fileio.check_writable(tmp_path / "ckpt")
+    assert seen == [f".vrs_jax_write_test.{os.getpid()}"]
+    assert list((tmp_path / "ckpt").iterdir()) == []

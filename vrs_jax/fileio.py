@@ -172,7 +172,8 @@ def check_writable(folder: str | Path) -> Path:
     d = Path(folder)
     if d.exists() and not d.is_dir():
         raise VrsError("output path exists and is not a folder", d)
-    probe = d / ".vrs_jax_write_test"
+    # one probe per process: processes of one multi-process run check the same folder at once
+    probe = d / f".vrs_jax_write_test.{os.getpid()}"
     try:
         d.mkdir(parents=True, exist_ok=True)
         probe.write_bytes(b"")
