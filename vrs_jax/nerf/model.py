@@ -175,8 +175,9 @@ def position_features(params: Any, cfg: NerfConfig, means: Array, covs: Array,
     scale = None
     if cfg.contraction:
         means, scale = contract_gaussians(means, cfg.norm_radius)
-        covs = covs * scale[..., None] ** 2
     if cfg.encoding != "hashgrid":
+        if scale is not None:
+            covs = covs * scale[..., None] ** 2
         return mipnerf.integrated_pos_enc(means, covs, cfg.min_deg_point, cfg.max_deg_point)
     n_rays, n_samples = means.shape[:2]
     half = 2.0 * cfg.norm_radius  # the cube [-norm_radius, norm_radius]^3 -> [0, 1]^3
