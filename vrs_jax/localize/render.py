@@ -4,7 +4,9 @@ Each retrieved reference image's 3D-linked keypoints are cast as patch cones
 (:func:`vrs_jax.features.rays.patch_rays`, the grid that reads real patches) and rendered with
 the NeRF of the image's cluster, either depth-guided (``narrow_samples`` around the
 keypoint's 3D point, then ``narrow_fine`` resampled where the surface is) or with the map's
-full coarse + fine sampling. Pure and jittable.
+full coarse + fine sampling. With ``probe_grid`` the depth-guided search runs on a few probe
+rays of each patch only; the surface they find, interpolated over the patch, places the
+``surface_samples`` of every other ray (:func:`probe_surface`). Pure and jittable.
 """
 
 from __future__ import annotations
@@ -28,12 +30,22 @@ Array = Any
 
 
 def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Array,
-                n_valid: Array, nerf_cfg, cfg: LocalizeConfig) -> Array:
-    """Render N rays [N, ...] in chunks, skipping chunks past ``n_valid`` -> rgb [N, 3]."""
+                n_valid: Array, nerf_cfg, cfg: LocalizeConfig,
+                samples: tuple[int, int] | None = None, keys: tuple[str, ...] = ("rgb",)
+                ) -> dict[str, Array]:
+    """Render N rays [N, ...] in chunks, skipping chunks past ``n_valid``.
+
+    ``samples``: (first, resampled) samples per ray inside [near, far] (depth-guided;
+    :func:`vrs_jax.nerf.model.render_rays_narrow`); None: the config's sampler (depth-guided
+    ``narrow_samples`` + ``narrow_fine``, or the map's full coarse + fine). Returns the
+    renderer's outputs ``keys`` (rgb [N, 3], depth [N], acc [N]); skipped rays hold zeros.
+    """
     n = o.shape[0]
     chunk = min(cfg.render_chunk, n)
     n_chunks = -(-n // chunk)
     pad = n_chunks * chunk - n
+    if samples is None and cfg.depth_guided:
+        samples = (cfg.narrow_samples, cfg.narrow_fine)
 
     def padded(x, fill=0.0):
         return jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)]).reshape(
@@ -42,22 +54,59 @@ def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Ar
     # padded rays: a harmless unit direction with a valid interval
     xs = (jnp.arange(n_chunks) * chunk, padded(o), padded(d, 1.0), padded(r, 1e-3),
           padded(near, 1.0), padded(far, 2.0))
+    blank = {"rgb": (3,), "depth": (), "acc": ()}
 
     def render_chunk(args):
         start, oc, dc, rc, nc, fc = args
 
         def go(_):
-            if cfg.depth_guided:
-                out = render_rays_narrow(field, oc, dc, rc, nc, fc, None, nerf_cfg,
-                                         cfg.narrow_samples, cfg.narrow_fine)
+            if samples is not None:
+                out = render_rays_narrow(field, oc, dc, rc, nc, fc, None, nerf_cfg, *samples)
             else:
                 out = render_rays(field, oc, dc, rc, nc, fc, None, nerf_cfg)
-            return out["rgb"]
+            return {k: out[k] for k in keys}
 
-        return jax.lax.cond(start < n_valid, go, lambda _: jnp.zeros((chunk, 3), oc.dtype), None)
+        def skip(_):
+            return {k: jnp.zeros((chunk,) + blank[k], oc.dtype) for k in keys}
 
-    rgb = jax.lax.map(render_chunk, xs)
-    return rgb.reshape(n_chunks * chunk, 3)[:n]
+        return jax.lax.cond(start < n_valid, go, skip, None)
+
+    out = jax.lax.map(render_chunk, xs)
+    return {k: v.reshape((n_chunks * chunk,) + v.shape[2:])[:n] for k, v in out.items()}
+
+
+def probe_surface(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Array,
+                  grid: int, nerf_cfg, cfg: LocalizeConfig) -> Array:
+    """z-depth [Kp, P, P] of the surface under every sample of the patches' full grid.
+
+    A ``grid`` x ``grid`` subset of each patch's rays (both ends of every row and column
+    included) is rendered with the depth-guided sampler around the keypoint's point depth
+    (``depth`` [Kp]); each probe's expected depth, or the point depth where it met no
+    surface (opacity below one half), is interpolated over the patch linearly in inverse
+    depth (exact for a planar patch under perspective). pr: the full grid [Kp, P, P, ...].
+    """
+    P = pr.radii.shape[1]
+    step = (P - 1) // (grid - 1)
+    probe = jax.tree.map(lambda x: x[:, ::step, ::step], pr)  # [Kp, g, g, ...]
+    shape = probe.radii.shape
+    near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
+    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+    out = render_flat(field, flat(probe.origins), flat(probe.directions), flat(probe.radii),
+                      flat(near), flat(far), n_kp * grid * grid, nerf_cfg, cfg,
+                      keys=("depth", "acc"))
+    z_kp = jnp.broadcast_to(jnp.maximum(depth, 1e-3)[:, None, None], shape)
+    hit = out["acc"].reshape(shape) > 0.5
+    z = jnp.where(hit, jnp.maximum(out["depth"].reshape(shape), 1e-3), z_kp)
+    return interpolate_depth(z, step)
+
+
+def interpolate_depth(z: Array, step: int) -> Array:
+    """z-depths [Kp, g, g] on every ``step``-th sample of a patch grid -> [Kp, P, P]
+    (P = (g - 1) step + 1), bilinear in inverse depth: exact where the samples see one plane
+    through a pinhole camera and the grid is affine in the image (1 / z is affine in the
+    pixel coordinates on a plane)."""
+    W = jnp.asarray(interpolation_matrix(z.shape[1], step))  # [P, g]
+    return 1.0 / jnp.einsum("ia,kab,jb->kij", W, 1.0 / z, W)
 
 
 def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Array, R: Array,
@@ -74,19 +123,25 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
     P = patches.size
     pr = rays_mod.patch_rays(kp, K, R, t, patches, dist)
     stride = cfg.render_stride
+    check_grids(patches, cfg)
+    n_kp = jnp.sum(mask)
+    z_ray = None
+    if cfg.probe_grid > 0:  # the surface under every ray, from a few probe rays
+        z_ray = probe_surface(field, pr, depth, n_kp, cfg.probe_grid, nerf_cfg, cfg)
     if stride > 1:
-        if patches.mode == "literal" or (P - 1) % stride:
-            raise VrsError(f"render_stride {stride} needs canonical patches with P - 1 a "
-                           f"multiple of it (P = {P}, mode {patches.mode})")
         pr = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
+        z_ray = None if z_ray is None else z_ray[:, ::stride, ::stride]
         P = pr.radii.shape[1]
     shape = (kp.shape[0], P, P)
-    if cfg.depth_guided:
+    samples = None
+    if z_ray is not None:
+        near_r, far_r = z_ray * (1.0 - cfg.surface_margin), z_ray * (1.0 + cfg.surface_margin)
+        samples = (cfg.surface_samples, 0)
+    elif cfg.depth_guided:
         near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
     else:
         near_r = jnp.broadcast_to(near, shape)
         far_r = jnp.broadcast_to(far, shape)
-    n_kp = jnp.sum(mask)
     if patches.mode == "literal":
         # overlapping axis-aligned patches share whole pixels: render each distinct one once
         pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
@@ -94,18 +149,37 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
         r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
         near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near_r.reshape(-1))
         far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far_r.reshape(-1))
-        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, nerf_cfg, cfg)
+        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, nerf_cfg, cfg)["rgb"]
         rgb = rgb_u[inverse.reshape(-1)].reshape(shape + (3,))
     else:
         flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
         rgb = render_flat(field, flat(pr.origins), flat(pr.directions), flat(pr.radii),
-                          flat(near_r), flat(far_r), n_kp * P * P, nerf_cfg, cfg)
+                          flat(near_r), flat(far_r), n_kp * P * P, nerf_cfg, cfg,
+                          samples)["rgb"]
         rgb = rgb.reshape(shape + (3,))
     gray = rgb_to_gray(rgb)
     if stride > 1:
         W = jnp.asarray(interpolation_matrix(P, stride))  # [P_full, P]
         gray = jnp.einsum("ia,kab,jb->kij", W, gray, W)
     return gray
+
+
+def check_grids(patches: PatchConfig, cfg: LocalizeConfig) -> None:
+    """VrsError unless the config's strided and probe grids fit the patch grid (static):
+    both need canonical patches with P - 1 a multiple of their step, and probes need the
+    depth-guided sampler (they search around the keypoint's point depth)."""
+    P = patches.size
+    stride, g = cfg.render_stride, cfg.probe_grid
+    if stride > 1 and (patches.mode == "literal" or (P - 1) % stride):
+        raise VrsError(f"render_stride {stride} needs canonical patches with P - 1 a "
+                       f"multiple of it (P = {P}, mode {patches.mode})")
+    if g > 0:
+        if patches.mode == "literal" or (P - 1) % (g - 1):
+            raise VrsError(f"probe_grid {g} needs canonical patches with P - 1 a multiple of "
+                           f"probe_grid - 1 (P = {P}, mode {patches.mode})")
+        if not cfg.depth_guided:
+            raise VrsError("probe_grid needs depth_guided sampling (the probes search "
+                           "around the keypoint's 3D point)")
 
 
 def interpolation_matrix(n: int, stride: int) -> np.ndarray:
@@ -181,12 +255,17 @@ def rays_per_patch(m: Map, cfg: LocalizeConfig) -> int:
     return ((size - 1) // cfg.render_stride + 1) ** 2
 
 
-def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> int:
-    """MLP evaluations per rendered ray (depth-guided: narrow + resampled; full: coarse + fine)."""
+def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> float:
+    """MLP evaluations per rendered patch ray (depth-guided: narrow + resampled, or with
+    probes their evaluations shared out over the patch's rays plus the surface samples;
+    full: coarse + fine): evaluations per patch = this x :func:`rays_per_patch`."""
+    if cfg.depth_guided and cfg.probe_grid > 0:
+        probes = cfg.probe_grid ** 2 * (cfg.narrow_samples + cfg.narrow_fine)
+        return probes / rays_per_patch(m, cfg) + cfg.surface_samples
     if cfg.depth_guided:
-        return cfg.narrow_samples + cfg.narrow_fine
+        return float(cfg.narrow_samples + cfg.narrow_fine)
     c = m.config.nerf
-    return c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine
+    return float(c.num_samples_coarse + (c.num_levels - 1) * c.num_samples_fine)
 
 
 def full_image_evals(m: Map, retrieved: np.ndarray) -> int:
