@@ -286,14 +286,15 @@ def run(args) -> dict[str, Any]:
     row = {"label": label, "overrides": overrides, "params": count_params(ilm.fields.params),
            "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
            "float32": res32, "float16": res16}
-    headers = ["field", "params", "MB", "PSNR dB", "med dB", "own %", "match", "correct",
-               "steps/s", "train s"]
-    rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{res32['patch_psnr_db']:.2f}",
+    headers = ["field", "params", "MB", "evals/patch", "PSNR dB", "med dB", "own %", "match",
+               "correct", "steps/s", "train s"]
+    rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{evals_per_patch(m, lcfg):.0f}",
+             f"{res32['patch_psnr_db']:.2f}",
              f"{res32['patch_psnr_median_db']:.2f}", f"{100 * res32['own_keypoint_rate']:.1f}",
              f"{res32['matches_per_view']:.1f}", f"{res32['correct_matches_per_view']:.1f}",
              fmt(train_info["steps_per_s"], 1), fmt(train_info["train_s"], 0)]]
     if res16 is not None:
-        rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}",
+        rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}", "",
                      f"{res16['patch_psnr_db']:.2f}", f"{res16['patch_psnr_median_db']:.2f}",
                      f"{100 * res16['own_keypoint_rate']:.1f}",
                      f"{res16['matches_per_view']:.1f}",
@@ -308,11 +309,22 @@ def run(args) -> dict[str, Any]:
            "localize": {"patch_size": m.config.features.patches.size, "ratio": lcfg.ratio,
                         "mutual": lcfg.mutual, "depth_guided": lcfg.depth_guided,
                         "narrow_samples": lcfg.narrow_samples,
-                        "narrow_fine": lcfg.narrow_fine, "depth_margin": lcfg.depth_margin},
+                        "narrow_fine": lcfg.narrow_fine, "depth_margin": lcfg.depth_margin,
+                        "render_stride": lcfg.render_stride, "probe_grid": lcfg.probe_grid,
+                        "surface_samples": lcfg.surface_samples,
+                        "surface_margin": lcfg.surface_margin,
+                        "nerf_evals_per_patch": evals_per_patch(m, lcfg)},
            "result": row}
     write_json(args.json, doc)
     log(f"wrote {args.json}")
     return doc
+
+
+def evals_per_patch(m, lcfg) -> float:
+    """NeRF evaluations per rendered keypoint patch with the localize config's sampler."""
+    from vrs_jax.localize.render import nerf_evals_per_ray, rays_per_patch
+
+    return nerf_evals_per_ray(m, lcfg) * rays_per_patch(m, lcfg)
 
 
 @cli_main

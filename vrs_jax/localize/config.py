@@ -157,6 +157,11 @@ class LocalizeConfig:
     # can gate its matches tighter than the seed.
     guided_threshold_px: float | None = None
     guided_render: bool = True
+    # Render mode: the map points that are inliers of the first pass's pose keep the
+    # descriptor of their first-pass patch (rendered from the reference that matched) in the
+    # guided pass instead of being rendered again from the pose; the pass renders only the
+    # points the first pass did not place. False: every candidate point rendered again.
+    guided_reuse_inliers: bool = False
     # Early exit over the retrieved list (render mode): the candidates are rendered best
     # first, and after each one the correspondences so far go to RANSAC; once its seed has
     # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all

@@ -344,15 +344,35 @@ def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
         patches = cfg.patches or m.config.features.patches
         keep = (first_occurrence(cand, pid)
                 & near_any(uv_r, q.points2d, q.mask, cfg.guided_radius))
+        reused = jnp.zeros_like(cand)
+        if cfg.guided_reuse_inliers and "inliers" in s:
+            reused = first_pass_inlier_slots(m, s).reshape(-1) & cand
+            seen = jnp.zeros(m.egm.points3d.shape[0], bool).at[jnp.maximum(pid, 0)].max(reused)
+            keep = keep & ~seen[jnp.maximum(pid, 0)]
         gray, _, valid = jax.lax.map(
             lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
             (idx, keep.reshape(idx.shape[0], -1)))
         desc = describe_patches(gray, m.config.features.descriptor)
         mask = valid.reshape(-1)
         n_new = jnp.sum(mask).astype(jnp.int32)
+        if cfg.guided_reuse_inliers and "inliers" in s:
+            first = s["desc"].reshape(desc.shape)
+            desc = jnp.where(reused.reshape(desc.shape[:2])[..., None], first, desc)
+            mask = mask | reused
     else:
         desc, mask = s["desc"], s["desc_mask"].reshape(-1)
     return desc.reshape(pid.shape[0], -1), mask & cand, n_new
+
+
+def first_pass_inlier_slots(m: Map, s: State) -> Array:
+    """[k, K_max] bool: the candidates' keypoint slots that the first pass matched to an
+    inlier of its refined pose (``s["j"]`` [k, Kq] matched slots, ``s["inliers"]``
+    [k * Kq])."""
+    j = s["j"]
+    k, kq = j.shape
+    inl = s["inliers"].reshape(k, kq)
+    rows = jnp.broadcast_to(jnp.arange(k)[:, None], j.shape)
+    return jnp.zeros((k, m.egm.point_idx.shape[1]), bool).at[rows, j].max(inl)
 
 
 def guided_refine(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, res: LocalizeResult,
