@@ -16,7 +16,7 @@ from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.eval.report import summarize
 from vrs_jax.localize.batch import localize_scene
-from vrs_jax.localize.stages import first_occurrence, near_any
+from vrs_jax.localize.stages import first_occurrence, first_pass_inlier_slots, near_any
 
 
 @pytest.fixture(scope="module")
@@ -186,6 +186,38 @@ def test_guided_pass_renders_each_point_once_near_query_keypoints(loaded):
             < cfg.guided_radius).any(1) & (np.asarray(z) > 0)
     guided = int(r.n_rendered) - int(r.n_rendered_first)
     assert 0 < guided <= int(near.sum()) < len(pid)
+
+
+def test_first_pass_inlier_slots_maps_inliers_to_candidate_slots():
+    class _M:  # the one map field the function reads: point_idx [N, K_max]
+        class egm:  # noqa: N801
+            point_idx = jnp.zeros((9, 5), jnp.int32)
+
+    j = jnp.array([[0, 3, 3, 1], [4, 2, 0, 0]])  # [k=2, Kq=4] matched slots
+    inl = jnp.array([[True, False, True, False], [False, True, False, False]]).reshape(-1)
+    slots = np.asarray(first_pass_inlier_slots(_M, {"j": j, "inliers": inl}))
+    want = np.zeros((2, 5), bool)
+    want[0, 0] = want[0, 3] = want[1, 2] = True
+    np.testing.assert_array_equal(slots, want)
+
+
+def test_guided_pass_reusing_inliers_renders_only_the_other_points(loaded):
+    """With guided_reuse_inliers the guided pass renders none of the first pass's inlier
+    points (fewer patches than without) and still keeps a pose at least as supported."""
+    m, queries = loaded
+    vrs = m.without_descriptors()
+    cfg = localize.get_config("test", guided_passes=1)
+    reuse = localize.get_config("test", guided_passes=1, guided_reuse_inliers=True)
+    q = _query(m, queries, 0, cfg)
+    r0, r1 = localize.localize(vrs, q, cfg), localize.localize(vrs, q, reuse)
+    assert bool(r0.success) and bool(r1.success)
+    assert int(r1.n_rendered_first) == int(r0.n_rendered_first)
+    g0 = int(r0.n_rendered) - int(r0.n_rendered_first)
+    g1 = int(r1.n_rendered) - int(r1.n_rendered_first)
+    assert g1 <= g0 - int(r0.n_inliers_first) // 2  # the inliers' points were not rendered
+    assert int(r1.n_inliers) >= int(r1.n_inliers_first)
+    c0, c1 = geometry.camera_center(r0.R, r0.t), geometry.camera_center(r1.R, r1.t)
+    assert float(np.linalg.norm(np.asarray(c0) - np.asarray(c1))) < 0.05
 
 
 def test_stages_stop_after_matching(loaded):
