@@ -311,8 +311,6 @@ def run(args) -> dict[str, Any]:
                         "narrow_samples": lcfg.narrow_samples,
                         "narrow_fine": lcfg.narrow_fine, "depth_margin": lcfg.depth_margin,
                         "render_stride": lcfg.render_stride, "probe_grid": lcfg.probe_grid,
-                        "surface_samples": lcfg.surface_samples,
-                        "surface_margin": lcfg.surface_margin,
                         "nerf_evals_per_patch": evals_per_patch(m, lcfg)},
            "result": row}
     write_json(args.json, doc)

@@ -128,16 +128,13 @@ class LocalizeConfig:
     depth_margin: float = 0.2
     narrow_samples: int = 24
     narrow_fine: int = 0
-    # Surface probes (depth-guided only): the narrow search above runs on probe_grid x
+    # Probes (depth-guided only): the first, evenly spaced pass above runs on probe_grid x
     # probe_grid rays of each patch (both ends of every row and column of the patch grid;
-    # P - 1 a multiple of probe_grid - 1); their surface depths, interpolated over the patch
-    # in inverse depth, centre every rendered ray's interval of +-surface_margin (relative)
-    # with surface_samples evenly spaced samples, one pass. A patch then costs
-    # probe_grid^2 (narrow_samples + narrow_fine) + rays x surface_samples evaluations
-    # instead of rays x (narrow_samples + narrow_fine). 0: off (every ray searches).
+    # P - 1 a multiple of probe_grid - 1), and every rendered ray draws its narrow_fine
+    # samples from their weights interpolated over the patch (needs narrow_fine >= 1). A
+    # patch then costs probe_grid^2 x narrow_samples + rays x narrow_fine evaluations
+    # instead of rays x (narrow_samples + narrow_fine). 0: off (every ray its own passes).
     probe_grid: int = 0
-    surface_samples: int = 8
-    surface_margin: float = 0.03
     # Guided passes (render where the query is): after a successful pose, the retrieved
     # images' map points are projected with it and each query keypoint is matched only to
     # points predicted within guided_radius pixels (mutual nearest neighbour, ratio test
@@ -200,11 +197,8 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.guided_passes must be >= 0 and guided_radius > 0")
         if self.guided_threshold_px is not None and self.guided_threshold_px <= 0:
             raise VrsError("LocalizeConfig.guided_threshold_px must be > 0 (or None)")
-        if self.probe_grid < 0 or self.probe_grid == 1 or self.surface_samples < 1:
-            raise VrsError("LocalizeConfig.probe_grid must be 0 (off) or >= 2, "
-                           "surface_samples >= 1")
-        if not 0 < self.surface_margin < 1:
-            raise VrsError("LocalizeConfig.surface_margin must be in (0, 1)")
+        if self.probe_grid < 0 or self.probe_grid == 1:
+            raise VrsError("LocalizeConfig.probe_grid must be 0 (off) or >= 2")
         if self.render_stride < 1:
             raise VrsError("LocalizeConfig.render_stride must be >= 1")
         if self.early_exit_inliers < 0:

@@ -4,13 +4,14 @@ Each retrieved reference image's 3D-linked keypoints are cast as patch cones
 (:func:`vrs_jax.features.rays.patch_rays`, the grid that reads real patches) and rendered with
 the NeRF of the image's cluster, either depth-guided (``narrow_samples`` around the
 keypoint's 3D point, then ``narrow_fine`` resampled where the surface is) or with the map's
-full coarse + fine sampling. With ``probe_grid`` the depth-guided search runs on a few probe
-rays of each patch only; the surface they find, interpolated over the patch, places the
-``surface_samples`` of every other ray (:func:`probe_surface`). Pure and jittable.
+full coarse + fine sampling. With ``probe_grid`` the depth-guided first pass runs on a few
+probe rays of each patch only, and every rendered ray draws its resampled pass from their
+weights (:func:`render_probed`). Pure and jittable.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -24,50 +25,48 @@ from vrs_jax.features.descriptor import rgb_to_gray
 from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.maps import Map
-from vrs_jax.nerf.model import Field, render_rays, render_rays_narrow, select_field
+from vrs_jax.nerf.model import (
+    Field,
+    render_rays,
+    render_rays_narrow,
+    render_rays_resampled,
+    select_field,
+)
 
 Array = Any
 
 
-def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Array,
-                n_valid: Array, nerf_cfg, cfg: LocalizeConfig,
-                samples: tuple[int, int] | None = None, keys: tuple[str, ...] = ("rgb",)
+def render_flat(render: Callable[..., dict[str, Array]], rays: tuple[Array, ...],
+                n_valid: Array, cfg: LocalizeConfig, keys: tuple[str, ...] = ("rgb",)
                 ) -> dict[str, Array]:
-    """Render N rays [N, ...] in chunks, skipping chunks past ``n_valid``.
+    """Render N rays in chunks of ``cfg.render_chunk``, skipping chunks past ``n_valid``.
 
-    ``samples``: (first, resampled) samples per ray inside [near, far] (depth-guided;
-    :func:`vrs_jax.nerf.model.render_rays_narrow`); None: the config's sampler (depth-guided
-    ``narrow_samples`` + ``narrow_fine``, or the map's full coarse + fine). Returns the
-    renderer's outputs ``keys`` (rgb [N, 3], depth [N], acc [N]); skipped rays hold zeros.
+    ``rays``: per-ray arrays [N, ...] (origins, directions, radii, then the sampler's
+    intervals) that ``render(*chunk_arrays)`` turns into a dict of outputs; returns its
+    entries ``keys`` [N, ...]. The last chunk is padded with copies of the last ray (valid
+    inputs whose outputs are dropped); skipped chunks hold zeros.
     """
-    n = o.shape[0]
+    n = rays[0].shape[0]
     chunk = min(cfg.render_chunk, n)
     n_chunks = -(-n // chunk)
     pad = n_chunks * chunk - n
-    if samples is None and cfg.depth_guided:
-        samples = (cfg.narrow_samples, cfg.narrow_fine)
 
-    def padded(x, fill=0.0):
-        return jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)]).reshape(
-            (n_chunks, chunk) + x.shape[1:])
+    def padded(x):
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
+        return x.reshape((n_chunks, chunk) + x.shape[1:])
 
-    # padded rays: a harmless unit direction with a valid interval
-    xs = (jnp.arange(n_chunks) * chunk, padded(o), padded(d, 1.0), padded(r, 1e-3),
-          padded(near, 1.0), padded(far, 2.0))
-    blank = {"rgb": (3,), "depth": (), "acc": ()}
+    xs = (jnp.arange(n_chunks) * chunk,) + tuple(padded(x) for x in rays)
+    blank = jax.eval_shape(lambda a: render(*a), tuple(x[0] for x in xs[1:]))
 
     def render_chunk(args):
-        start, oc, dc, rc, nc, fc = args
+        start, chunk_rays = args[0], args[1:]
 
         def go(_):
-            if samples is not None:
-                out = render_rays_narrow(field, oc, dc, rc, nc, fc, None, nerf_cfg, *samples)
-            else:
-                out = render_rays(field, oc, dc, rc, nc, fc, None, nerf_cfg)
+            out = render(*chunk_rays)
             return {k: out[k] for k in keys}
 
         def skip(_):
-            return {k: jnp.zeros((chunk,) + blank[k], oc.dtype) for k in keys}
+            return {k: jnp.zeros(blank[k].shape, blank[k].dtype) for k in keys}
 
         return jax.lax.cond(start < n_valid, go, skip, None)
 
@@ -75,38 +74,54 @@ def render_flat(field: Field, o: Array, d: Array, r: Array, near: Array, far: Ar
     return {k: v.reshape((n_chunks * chunk,) + v.shape[2:])[:n] for k, v in out.items()}
 
 
-def probe_surface(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Array,
-                  grid: int, nerf_cfg, cfg: LocalizeConfig) -> Array:
-    """z-depth [Kp, P, P] of the surface under every sample of the patches' full grid.
+def sampler(field: Field, nerf_cfg, cfg: LocalizeConfig) -> Callable[..., dict[str, Array]]:
+    """The config's ray renderer ``fn(o, d, r, near, far) -> dict``: depth-guided
+    ``narrow_samples`` + ``narrow_fine`` inside [near, far], or the map's full coarse +
+    fine sampling."""
+    if cfg.depth_guided:
+        return lambda o, d, r, n, f: render_rays_narrow(field, o, d, r, n, f, None, nerf_cfg,
+                                                        cfg.narrow_samples, cfg.narrow_fine)
+    return lambda o, d, r, n, f: render_rays(field, o, d, r, n, f, None, nerf_cfg)
 
-    A ``grid`` x ``grid`` subset of each patch's rays (both ends of every row and column
-    included) is rendered with the depth-guided sampler around the keypoint's point depth
-    (``depth`` [Kp]); each probe's expected depth, or the point depth where it met no
-    surface (opacity below one half), is interpolated over the patch linearly in inverse
-    depth (exact for a planar patch under perspective). pr: the full grid [Kp, P, P, ...].
+
+def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Array,
+                  nerf_cfg, cfg: LocalizeConfig) -> Array:
+    """Colours [Kp, P', P', 3] of the patches' rendered rays (every ``render_stride``-th
+    sample of the full grid), their samples placed by a few probe rays per patch.
+
+    ``probe_grid`` x ``probe_grid`` rays of each patch's full grid (both ends of every row
+    and column) take the depth-guided first pass, ``narrow_samples`` evenly spaced around
+    the keypoint's point depth (``depth`` [Kp]); every ray of the patch shares that window.
+    Their weights, interpolated bilinearly over the patch, are the proposal from which each
+    rendered ray draws its ``narrow_fine`` samples (mip-NeRF's fine level, with the coarse
+    level of the neighbouring probes instead of its own: the rays of one patch are a few
+    pixels apart and cross the same surface). pr: the full grid [Kp, P, P, ...]; n_kp: the
+    valid keypoints, a prefix of the rows.
     """
+    g, stride = cfg.probe_grid, cfg.render_stride
     P = pr.radii.shape[1]
-    step = (P - 1) // (grid - 1)
-    probe = jax.tree.map(lambda x: x[:, ::step, ::step], pr)  # [Kp, g, g, ...]
-    shape = probe.radii.shape
-    near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
+    step = (P - 1) // (g - 1)
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    out = render_flat(field, flat(probe.origins), flat(probe.directions), flat(probe.radii),
-                      flat(near), flat(far), n_kp * grid * grid, nerf_cfg, cfg,
-                      keys=("depth", "acc"))
-    z_kp = jnp.broadcast_to(jnp.maximum(depth, 1e-3)[:, None, None], shape)
-    hit = out["acc"].reshape(shape) > 0.5
-    z = jnp.where(hit, jnp.maximum(out["depth"].reshape(shape), 1e-3), z_kp)
-    return interpolate_depth(z, step)
-
-
-def interpolate_depth(z: Array, step: int) -> Array:
-    """z-depths [Kp, g, g] on every ``step``-th sample of a patch grid -> [Kp, P, P]
-    (P = (g - 1) step + 1), bilinear in inverse depth: exact where the samples see one plane
-    through a pinhole camera and the grid is affine in the image (1 / z is affine in the
-    pixel coordinates on a plane)."""
-    W = jnp.asarray(interpolation_matrix(z.shape[1], step))  # [P, g]
-    return 1.0 / jnp.einsum("ia,kab,jb->kij", W, 1.0 / z, W)
+    probe = jax.tree.map(lambda x: x[:, ::step, ::step], pr)  # [Kp, g, g, ...]
+    near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, probe.radii.shape)
+    coarse = lambda o, d, r, n, f: render_rays_narrow(  # noqa: E731
+        field, o, d, r, n, f, None, nerf_cfg, cfg.narrow_samples)
+    out = render_flat(coarse, (flat(probe.origins), flat(probe.directions), flat(probe.radii),
+                               flat(near), flat(far)), n_kp * g * g, cfg,
+                      keys=("t_vals", "weights"))
+    kp_n = depth.shape[0]
+    weights = out["weights"].reshape(kp_n, g, g, -1)
+    t_vals = out["t_vals"].reshape(kp_n, g * g, -1)[:, 0]  # [Kp, S + 1]: one window a patch
+    W = jnp.asarray(interpolation_matrix(g, step)[::stride])  # [P', g]
+    w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, P', P', S]
+    rays = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
+    side = rays.radii.shape[1]
+    t_rays = jnp.broadcast_to(t_vals[:, None, None], (kp_n, side, side, t_vals.shape[-1]))
+    fine = lambda o, d, r, t, w: render_rays_resampled(  # noqa: E731
+        field, o, d, r, t, w, None, nerf_cfg, cfg.narrow_fine)
+    rgb = render_flat(fine, (flat(rays.origins), flat(rays.directions), flat(rays.radii),
+                             flat(t_rays), flat(w_rays)), n_kp * side * side, cfg)["rgb"]
+    return rgb.reshape(kp_n, side, side, 3)
 
 
 def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Array, R: Array,
@@ -125,38 +140,36 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
     stride = cfg.render_stride
     check_grids(patches, cfg)
     n_kp = jnp.sum(mask)
-    z_ray = None
-    if cfg.probe_grid > 0:  # the surface under every ray, from a few probe rays
-        z_ray = probe_surface(field, pr, depth, n_kp, cfg.probe_grid, nerf_cfg, cfg)
-    if stride > 1:
-        pr = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
-        z_ray = None if z_ray is None else z_ray[:, ::stride, ::stride]
-        P = pr.radii.shape[1]
-    shape = (kp.shape[0], P, P)
-    samples = None
-    if z_ray is not None:
-        near_r, far_r = z_ray * (1.0 - cfg.surface_margin), z_ray * (1.0 + cfg.surface_margin)
-        samples = (cfg.surface_samples, 0)
-    elif cfg.depth_guided:
-        near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
+    if cfg.probe_grid > 0:
+        rgb = render_probed(field, pr, depth, n_kp, nerf_cfg, cfg)
+        P = rgb.shape[1]
     else:
-        near_r = jnp.broadcast_to(near, shape)
-        far_r = jnp.broadcast_to(far, shape)
-    if patches.mode == "literal":
-        # overlapping axis-aligned patches share whole pixels: render each distinct one once
-        pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
-        o, d = geometry.pixel_rays(K, R, t, pixels, dist)
-        r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
-        near_p = jnp.zeros(pixels.shape[:1]).at[inverse.reshape(-1)].set(near_r.reshape(-1))
-        far_p = jnp.ones(pixels.shape[:1]).at[inverse.reshape(-1)].set(far_r.reshape(-1))
-        rgb_u = render_flat(field, o, d, r, near_p, far_p, count, nerf_cfg, cfg)["rgb"]
-        rgb = rgb_u[inverse.reshape(-1)].reshape(shape + (3,))
-    else:
-        flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-        rgb = render_flat(field, flat(pr.origins), flat(pr.directions), flat(pr.radii),
-                          flat(near_r), flat(far_r), n_kp * P * P, nerf_cfg, cfg,
-                          samples)["rgb"]
-        rgb = rgb.reshape(shape + (3,))
+        if stride > 1:
+            pr = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
+            P = pr.radii.shape[1]
+        shape = (kp.shape[0], P, P)
+        if cfg.depth_guided:
+            near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
+        else:
+            near_r = jnp.broadcast_to(near, shape)
+            far_r = jnp.broadcast_to(far, shape)
+        render = sampler(field, nerf_cfg, cfg)
+        if patches.mode == "literal":
+            # overlapping axis-aligned patches share whole pixels: render each distinct
+            # one once
+            pixels, inverse, count = rays_mod.unique_literal_pixels(pr.positions, mask)
+            o, d = geometry.pixel_rays(K, R, t, pixels, dist)
+            r = jnp.broadcast_to(pr.radii[0, 0, 0], pixels.shape[:1])
+            idx = inverse.reshape(-1)
+            near_p = jnp.zeros(pixels.shape[:1]).at[idx].set(near_r.reshape(-1))
+            far_p = jnp.ones(pixels.shape[:1]).at[idx].set(far_r.reshape(-1))
+            rgb_u = render_flat(render, (o, d, r, near_p, far_p), count, cfg)["rgb"]
+            rgb = rgb_u[idx].reshape(shape + (3,))
+        else:
+            flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+            rgb = render_flat(render, (flat(pr.origins), flat(pr.directions), flat(pr.radii),
+                                       flat(near_r), flat(far_r)), n_kp * P * P, cfg)["rgb"]
+            rgb = rgb.reshape(shape + (3,))
     gray = rgb_to_gray(rgb)
     if stride > 1:
         W = jnp.asarray(interpolation_matrix(P, stride))  # [P_full, P]
@@ -177,9 +190,10 @@ def check_grids(patches: PatchConfig, cfg: LocalizeConfig) -> None:
         if patches.mode == "literal" or (P - 1) % (g - 1):
             raise VrsError(f"probe_grid {g} needs canonical patches with P - 1 a multiple of "
                            f"probe_grid - 1 (P = {P}, mode {patches.mode})")
-        if not cfg.depth_guided:
-            raise VrsError("probe_grid needs depth_guided sampling (the probes search "
-                           "around the keypoint's 3D point)")
+        if not cfg.depth_guided or cfg.narrow_fine < 1:
+            raise VrsError("probe_grid needs depth_guided sampling with narrow_fine >= 1 "
+                           "(the probes search around the keypoint's 3D point, every ray "
+                           "resamples from them)")
 
 
 def interpolation_matrix(n: int, stride: int) -> np.ndarray:
@@ -257,11 +271,11 @@ def rays_per_patch(m: Map, cfg: LocalizeConfig) -> int:
 
 def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> float:
     """MLP evaluations per rendered patch ray (depth-guided: narrow + resampled, or with
-    probes their evaluations shared out over the patch's rays plus the surface samples;
+    probes their narrow pass shared out over the patch's rays plus the resampled pass;
     full: coarse + fine): evaluations per patch = this x :func:`rays_per_patch`."""
     if cfg.depth_guided and cfg.probe_grid > 0:
-        probes = cfg.probe_grid ** 2 * (cfg.narrow_samples + cfg.narrow_fine)
-        return probes / rays_per_patch(m, cfg) + cfg.surface_samples
+        probes = cfg.probe_grid ** 2 * cfg.narrow_samples
+        return probes / rays_per_patch(m, cfg) + cfg.narrow_fine
     if cfg.depth_guided:
         return float(cfg.narrow_samples + cfg.narrow_fine)
     c = m.config.nerf

@@ -306,20 +306,21 @@ def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: A
     For patch rays whose surface depth is known (the EGM point of the keypoint), samples
     around that depth replace the full coarse + fine sampling: ``num_samples`` evenly spaced
     samples in the interval, then (``num_fine`` > 0) ``num_fine`` samples resampled from
-    their weights inside the same interval, as mip-NeRF's fine level does over the whole
-    ray. The MLP is the shared one, so both passes are ordinary mip-NeRF levels; the
-    resampled pass puts its frustums where the field's surface is, which is what the MLP
-    learned to colour (measured on dtu_scan24: 16 + 8 samples give the keypoint patches
-    1.1 dB and 9 points of own-keypoint rate more than 16 samples in one pass, see
-    ``benchmarks.fidelity``).
+    their weights inside the same interval (:func:`render_rays_resampled`), as mip-NeRF's
+    fine level does over the whole ray. The MLP is the shared one, so both passes are
+    ordinary mip-NeRF levels; the resampled pass puts its frustums where the field's
+    surface is, which is what the MLP learned to colour (measured on dtu_scan24: 16 + 8
+    samples give the keypoint patches 1.1 dB and 9 points of own-keypoint rate more than 16
+    samples in one pass, see ``benchmarks.fidelity``).
 
     Args:
       origins, directions: [R, 3] world frame; radii, near, far: [R].
       num_samples: samples of the first pass (static), e.g. 16.
       num_fine: samples of the resampled pass (static); 0 renders the first pass only.
     Returns:
-      dict(rgb [R, 3], depth [R], acc [R]) of the last pass; the background fills what
-      the interval misses.
+      dict(rgb [R, 3], depth [R], acc [R]) of the last pass, and the first pass's
+      t_vals [R, S + 1] and weights [R, S] (the proposal a resampled pass draws from); the
+      background fills what the interval misses.
     """
     if key is None:
         key = jax.random.key(0)
@@ -331,13 +332,30 @@ def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: A
     rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r, view_enc, keys[1],
                              randomized)
     res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
+    first = {"t_vals": t_vals, "weights": res["weights"]}
     if num_fine > 0:
-        t_vals, (means, covs) = mipnerf.resample_along_rays(
-            keys[2], o, d, r, t_vals, res["weights"], num_fine, randomized,
-            cfg.resample_padding)
-        rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r, view_enc,
-                                 keys[3], randomized)
-        res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
+        res = render_rays_resampled(field, origins, directions, radii, t_vals, res["weights"],
+                                    keys[2], cfg, num_fine, randomized)
+    return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"], **first}
+
+
+def render_rays_resampled(field: Field, origins: Array, directions: Array, radii: Array,
+                          t_vals: Array, weights: Array, key: Array | None, cfg: NerfConfig,
+                          num_fine: int, randomized: bool = False) -> dict[str, Array]:
+    """One resampled (fine) level: ``num_fine`` samples drawn from a proposal, the
+    piecewise-constant ``weights`` [R, S] over the intervals ``t_vals`` [R, S + 1] (a
+    coarse pass of these rays, or of nearby rays: the patch probes of localization), then
+    evaluated and composited. origins, directions: [R, 3] world frame; radii: [R].
+    Returns dict(rgb [R, 3], depth [R], acc [R])."""
+    if key is None:
+        key = jax.random.key(0)
+    o, d, r = normalize_rays(field, origins, directions, radii)
+    keys = jax.random.split(key, 2)
+    t_new, (means, covs) = mipnerf.resample_along_rays(
+        keys[0], o, d, r, t_vals, weights, num_fine, randomized, cfg.resample_padding)
+    rgb, density = _eval_mlp(field.params, cfg, means, covs, t_new, r, _view_encoding(cfg, d),
+                             keys[1], randomized)
+    res = mipnerf.volumetric_rendering(rgb, density, t_new, d, field.background)
     return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"]}
 
 
