@@ -1147,3 +1147,69 @@ def test_write_checks_of_two_processes_do_not_collide(tmp_path, monkeypatch):
     fileio.check_writable(tmp_path / "ckpt")
     assert seen == [f".vrs_jax_write_test.{os.getpid()}"]
     assert list((tmp_path / "ckpt").iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- benchmarks' outputs
+
+
+def test_benchmark_outputs_are_never_replaced_silently(tiny_map, tmp_path, capsys):
+    """Before: every ``python -m benchmarks.NAME --json F`` (and ``--plot``, ``--figure``,
+    the figures of ``benchmarks.figures --out``) replaced an existing F without a word, and
+    ``--plot``/``--figure`` into a map folder replaced the map's files. Now an existing file
+    is refused before any work unless --overwrite; a map's file never, even with it."""
+    from benchmarks import (
+        ablation,
+        clusters,
+        confidence,
+        fidelity,
+        figures,
+        localize,
+        map_size,
+        nerf,
+        render,
+        shard,
+        sift_reference,
+        stream,
+        track,
+    )
+
+    old = tmp_path / "old.json"
+    old.write_text("earlier results\n")
+    png = tmp_path / "old.png"
+    png.write_bytes(b"earlier figure")
+    figs = tmp_path / "figs"
+    figs.mkdir()
+    (figs / "timing.png").write_bytes(b"earlier figure")
+    m = tmp_path / "map"
+    shutil.copytree(tiny_map, m)
+    before = snapshot(tmp_path)
+    js = ["--json", str(old)]
+    ds = ["--format", "7scenes", "--root", str(tmp_path / "nowhere")]
+    new = str(tmp_path / "new.json")
+    cases = [
+        (ablation.main, js, old), (localize.main, js, old), (render.main, js, old),
+        (shard.main, js, old), (stream.main, js, old), (map_size.main, js, old),
+        (clusters.main, js, old), (confidence.main, js, old),
+        (sift_reference.main, [*ds, *js], old),
+        (fidelity.main, ["--map", str(m), *js], old),
+        (nerf.main, ["--data", "d", "--format", "nerf", "--minutes", "1", *js], old),
+        (track.main, ["--map", str(m), *js], old),
+        (track.main, ["--map", str(m), "--json", new, "--plot", str(png)], png),
+        (track.main, ["--map", str(m), "--json", new, "--plot", str(m / "map.json"),
+                      "--overwrite"], m / "map.json"),
+        (map_size.main, ["--json", new, "--plot", str(png)], png),
+        (map_size.main, ["--json", new, "--plot", str(m / "egm.npz"), "--overwrite"],
+         m / "egm.npz"),
+        (clusters.main, ["--json", new, "--figure", str(png)], png),
+        (clusters.main, ["--json", new, "--figure", str(m / "ilm.npz"), "--overwrite"],
+         m / "ilm.npz"),
+        (figures.main, ["--out", str(figs), "--figures", "timing"], figs / "timing.png"),
+        (figures.main, ["--out", str(m), "--figures", "timing", "--localize-json", str(old),
+                        "--overwrite"], m),
+        (confidence.main, ["--from-json", str(old), "--json", str(old), "--overwrite"], old),
+    ]
+    for main, args, named in cases:
+        line = assert_one_error_line(main(args), capsys.readouterr().err, named)
+        assert "already exists" in line or "map" in line or "input" in line, line
+    assert snapshot(tmp_path) == before
+    assert not tmp_files(tmp_path)
