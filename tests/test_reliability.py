@@ -1213,3 +1213,33 @@ def test_benchmark_outputs_are_never_replaced_silently(tiny_map, tmp_path, capsy
         assert "already exists" in line or "map" in line or "input" in line, line
     assert snapshot(tmp_path) == before
     assert not tmp_files(tmp_path)
+
+
+def test_blank_query_failure_names_its_missing_keypoints(tiny_map, small_synthetic_scene,
+                                                         tmp_path, capsys):
+    """Before: a blank (featureless) query's summary.json said "PnP failed (too few matches or
+    inliers)"; the Localizer's result said nothing. Now the reason names 0 keypoints, in the
+    run's summary and from ``Localizer.failure_reason``; a good query still has none."""
+    from vrs_jax.cli import localize as cli
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.localize import Localizer
+
+    root = tmp_path / "room"
+    shutil.copytree(small_synthetic_scene, root)
+    q = load_scene("7scenes", root).queries()
+    w, h = (int(s) for s in q.sizes[2])
+    fileio.write_image(q.image_paths[2], np.full((h, w, 3), 128, np.uint8))
+    out = tmp_path / "loc"
+    rc = cli.main(["--map", str(tiny_map), "--config", "test", "--mode", "real", "--no-timing",
+                   "--quiet", "--format", "7scenes", "--root", str(root), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    rows = {r["name"]: r for r in json.loads((out / "summary.json").read_text())["per_query"]}
+    assert not rows[q.names[2]]["success"]
+    assert rows[q.names[2]]["error"].startswith("no keypoints in the query image"), rows
+    assert rows[q.names[0]]["error"] is None
+    loc = Localizer(tiny_map, "test", source="real")
+    blank = loc.localize_image(np.full((h, w), 0.5, np.float32), q.K[2])
+    assert int(blank.n_keypoints) == 0
+    assert loc.failure_reason(blank).startswith("no keypoints in the query image")
+    good = loc.localize_image(q.image_paths[0], q.K[0])
+    assert bool(good.success) and loc.failure_reason(good) is None

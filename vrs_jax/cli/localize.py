@@ -221,7 +221,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                   basename=args.basename)
     summary = summarize(queries, results, info, m, cfg, Path(args.map))
     conf, verdict = result_verdicts(m, results, cfg.confidence)
-    summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v))
+    summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v),
+                                      cfg.pnp.min_inliers)
                             for n, r, c, v in zip(queries.names, results, conf, verdict,
                                                   strict=True)]
     if tracks is not None:
@@ -289,12 +290,13 @@ def tracking_counts(tracks) -> dict:
 
 
 def per_query(name: str, r, error: str | None, confidence: float = 0.0,
-              verdict: str = "failed") -> dict:
+              verdict: str = "failed", min_inliers: int = 1) -> dict:
     """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
     inliers' geometry (coverage of the query image, median ray angle with the map views,
     relative depth spread; None without inliers), the pose ``confidence`` in [0, 1] and its
     ``verdict`` (localized / uncertain / failed; localize.confidence) and why it has no PnP
-    pose (``error``: None when localized)."""
+    pose (``error``: None when localized; localize.failure_reason with the PnP config's
+    ``min_inliers``)."""
     if r is None:
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
                 "inlier_coverage": None, "inlier_ray_angle_deg": None,
@@ -307,8 +309,7 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
             "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
             "confidence": round(confidence, 4), "verdict": verdict,
-            "error": None if ok else "PnP failed (too few matches or inliers): the top-1 "
-                                     "reference pose is written"}
+            "error": localize.failure_reason(r, min_inliers)}
 
 
 @cli_main
