@@ -1243,3 +1243,27 @@ def test_blank_query_failure_names_its_missing_keypoints(tiny_map, small_synthet
     assert loc.failure_reason(blank).startswith("no keypoints in the query image")
     good = loc.localize_image(q.image_paths[0], q.K[0])
     assert bool(good.success) and loc.failure_reason(good) is None
+
+
+def test_ctrl_c_while_the_interpreter_exits_is_one_line():
+    """Ctrl-C after a command finished, while the interpreter runs its exit handlers (jax
+    clears its caches at exit), printed a traceback from the exit handler (exit status 0 or
+    killed by SIGINT). Now: one 'interrupted' line and status 130. The exit handler is a
+    sleep here, so the signal lands in it whatever the machine's speed."""
+    code = ("import atexit, time\n"
+            "from vrs_jax.errors import cli_main\n"
+            "atexit.register(time.sleep, 30)\n"
+            "main = cli_main(lambda: print('done', flush=True))\n"
+            "raise SystemExit(main())\n")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == "done\n"
+        time.sleep(0.5)  # in the exit handler
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=20)
+    finally:
+        p.kill()
+    assert p.returncode == 130, err
+    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err

@@ -64,7 +64,7 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
                 raise stop from None
         except VrsError as e:
             print(f"error: {e}", file=sys.stderr)
-            return 2
+            return _finished(2, program)
         except Terminated:
             print("terminated (SIGTERM); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
@@ -73,9 +73,23 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
             print("interrupted (Ctrl-C); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
             return _stopped(130, program)
-        return 0 if rc is None else int(rc)
+        return _finished(0 if rc is None else int(rc), program)
 
     return wrapper
+
+
+def _finished(code: int, program: bool) -> int:
+    """Exit status ``code`` of a program that ran to its end: a Ctrl-C during the
+    interpreter's teardown that follows (jax clears its caches at exit, which takes a
+    moment) stops it with one line and status 130, not a traceback from an exit handler."""
+    if program and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _interrupted_at_exit)
+    return code
+
+
+def _interrupted_at_exit(signum, frame) -> None:
+    print("interrupted (Ctrl-C) while exiting; the command had finished", file=sys.stderr)
+    _stopped(130, True)
 
 
 def _stop_in(e: BaseException) -> KeyboardInterrupt | None:
