@@ -1267,3 +1267,116 @@ def test_ctrl_c_while_the_interpreter_exits_is_one_line():
         p.kill()
     assert p.returncode == 130, err
     assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+
+
+# ----------------------------------------------------------------------------- COLMAP models
+
+
+def _colmap_model(tiny_map, d: Path, text: bool) -> Path:
+    from vrs_jax import maps
+    from vrs_jax.egm.colmap import export_colmap
+
+    return export_colmap(maps.load_map(tiny_map, require_ilm=False).egm, d, text=text)
+
+
+def _edit_line(path: Path, k: int, fn) -> None:
+    """Apply ``fn`` to the fields of the k-th data line (not a comment) of a text file."""
+    lines = path.read_text().splitlines()
+    data = [i for i, s in enumerate(lines) if s and not s.startswith("#")]
+    lines[data[k]] = " ".join(fn(lines[data[k]].split()))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_damaged_colmap_models_are_one_line(tiny_map, small_synthetic_scene, tmp_path):
+    """Before: a truncated images.bin or points3D.bin hung pycolmap (minutes, no output); a
+    truncated cameras.bin read as 'non-positive focal length'; the other damage came back as
+    COLMAP's C++ check text without the file; a zero quaternion loaded as a pose; a duplicate
+    image name was a ValueError traceback; a binary and a text model that disagree loaded the
+    binary one silently. Now each is one VrsError naming the file (and line) and the problem,
+    and damaged rigs/frames files (not needed: each image's pose is in the images file) do
+    not matter."""
+    from vrs_jax.data.readers import load_scene
+
+    good = {t: _colmap_model(tiny_map, tmp_path / f"good_{t}", t) for t in (True, False)}
+
+    def case(name, text, damage):
+        d = tmp_path / name
+        shutil.copytree(good[text], d)
+        damage(d)
+        return d
+
+    def cut(fname, frac):
+        return lambda d: (d / fname).write_bytes((d / fname).read_bytes()[:int(
+            frac * (d / fname).stat().st_size)])
+
+    def edit(fname, k, fn):
+        return lambda d: _edit_line(d / fname, k, fn)
+
+    def both(d):
+        for f in good[False].iterdir():
+            shutil.copy(f, d / f.name)
+        _edit_line(d / "images.txt", 0, lambda t: t[:5] + ["5.0"] + t[6:])
+
+    cases = [
+        *[(f"cut_{f}_{x}", False, cut(f"{f}.bin", x), f"{f}.bin", "truncated")
+          for f in ("cameras", "images", "points3D") for x in (0.0, 0.5, 0.97)],
+        ("cut_points_txt", True, cut("points3D.txt", 0.5), "points3D.txt", "malformed"),
+        ("cam_word", True, edit("cameras.txt", 0, lambda t: t[:4] + ["abc"] + t[5:]),
+         "cameras.txt:4", "expected numbers"),
+        ("cam_short", True, edit("cameras.txt", 0, lambda t: t[:-1]), "cameras.txt:4",
+         "expected 8"),
+        ("cam_size", True, edit("cameras.txt", 0, lambda t: t[:2] + ["0", "0"] + t[4:]),
+         "cameras.txt:4", "size 0x0"),
+        ("img_short", True, edit("images.txt", 0, lambda t: t[:5]), "images.txt:5",
+         "expected 10"),
+        ("img_camera", True, edit("images.txt", 0, lambda t: t[:8] + ["999"] + t[9:]),
+         "images.txt:5", "camera 999, which is not in the model"),
+        ("img_quat", True, edit("images.txt", 0, lambda t: t[:1] + ["0"] * 4 + t[5:]),
+         "images.txt:5", "zero quaternion"),
+        ("img_dup", True, edit("images.txt", 2, lambda t: t[:9] + [
+            (good[True] / "images.txt").read_text().split("\n")[4].split()[9]]),
+         "images.txt", "appears twice"),
+        ("pt_image", True, edit("points3D.txt", 0, lambda t: t[:8] + ["999", "0"] + t[10:]),
+         "points3D.txt:4", "image 999, which is not in the model"),
+        ("pt_index", True, edit("points3D.txt", 0, lambda t: t[:9] + ["99999"] + t[10:]),
+         "points3D.txt:4", "2D point 99999"),
+        ("pt_nan", True, edit("points3D.txt", 0, lambda t: t[:1] + ["nan"] + t[2:]),
+         "points3D.txt:4", "non-finite"),
+        ("both", True, both, "", "disagree"),
+    ]
+    for name, text, damage, names, problem in cases:
+        d = case(name, text, damage)
+        with pytest.raises(VrsError) as e:
+            load_scene("colmap", d, images=small_synthetic_scene)
+        msg = str(e.value)
+        assert "\n" not in msg and str(d / names if names else d) in msg, (name, msg)
+        assert problem in msg, (name, msg)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(VrsError, match="no COLMAP model here"):
+        load_scene("colmap", empty, images=small_synthetic_scene)
+    for name, part in (("rigs", "rigs.bin"), ("frames", "frames.bin")):
+        d = case(name, False, cut(part, 0.97))
+        s = load_scene("colmap", d, images=small_synthetic_scene)
+        ref = load_scene("colmap", good[False], images=small_synthetic_scene)
+        assert s.names == ref.names and np.array_equal(s.R, ref.R)
+
+
+def test_colmap_export_never_leaves_two_models(tiny_map, small_synthetic_scene, tmp_path,
+                                               capsys):
+    """Before: ``build_egm --export-colmap DIR`` (text) into a folder holding a binary model
+    wrote the text model beside it; COLMAP (and the reader) then read the stale binary one.
+    Now a model of either format is refused; with --overwrite the other format is removed,
+    and the exported model reads back."""
+    from vrs_jax.cli import build_egm
+    from vrs_jax.data.readers import load_scene
+
+    d = _colmap_model(tiny_map, tmp_path / "cm", text=False)
+    args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--config", "test",
+            "--out", str(tmp_path / "egm"), "--export-colmap", str(d), "--quiet"]
+    assert_one_error_line(build_egm.main(args), capsys.readouterr().err, d / "cameras")
+    assert not (d / "cameras.txt").exists()
+    assert build_egm.main([*args, "--overwrite"]) == 0
+    assert sorted(p.suffix for p in d.iterdir()) == [".txt"] * 5
+    s = load_scene("colmap", d, images=small_synthetic_scene)
+    assert len(s.names) == 24

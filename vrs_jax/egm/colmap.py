@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from vrs_jax import fileio
-from vrs_jax.data.readers.colmap import colmap_camera
+from vrs_jax.data.readers.colmap import MODEL_PARTS, colmap_camera
 from vrs_jax.egm.map import EGM
 
 
@@ -62,13 +62,19 @@ def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
 def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True,
                   overwrite: bool = False) -> Path:
     """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin); a model
-    already there is refused unless ``overwrite``."""
+    already there, binary or text, is refused unless ``overwrite``, which also removes the
+    other format's files (COLMAP reads a .bin model before a .txt one: a stale one left
+    beside would be read instead)."""
     d = fileio.check_writable(out_dir)
-    for name in ("cameras", "images", "points3D"):
-        fileio.check_new(d / f"{name}.{'txt' if text else 'bin'}", overwrite)
+    ext, other = ("txt", "bin") if text else ("bin", "txt")
+    for name in (*MODEL_PARTS, "rigs", "frames"):
+        for e in (ext, other):
+            fileio.check_new(d / f"{name}.{e}", overwrite)
     rec = to_colmap(egm)
     if text:
         rec.write_text(d)  # fileio-exempt: pycolmap writes its own files
     else:
         rec.write_binary(d)
+    for name in (*MODEL_PARTS, "rigs", "frames"):  # only the new model is left
+        (d / f"{name}.{other}").unlink(missing_ok=True)
     return d

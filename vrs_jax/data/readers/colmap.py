@@ -8,7 +8,11 @@ mapped to a pinhole K plus OpenCV distortion ``(k1, k2, p1, p2, k3)``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import os
 import struct
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +27,8 @@ from vrs_jax.errors import VrsError, require_dir
 _N_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8,
              "FULL_OPENCV": 12}
 SUPPORTED_MODELS = tuple(_N_PARAMS)
+MODEL_PARTS = ("cameras", "images", "points3D")
+"""The files of a COLMAP sparse model that the reader reads (.bin or .txt)."""
 
 
 def camera_to_K_dist(model: str, params, where: Path | str | None = None,
@@ -73,20 +79,287 @@ def find_model(root: Path) -> Path:
 
 
 def _check_model_files(model: Path) -> None:
-    for part in ("cameras", "images", "points3D"):
+    for part in MODEL_PARTS:
         if not any((model / f"{part}.{e}").is_file() for e in ("bin", "txt")):
             raise VrsError(f"incomplete COLMAP model: {part}.bin / {part}.txt missing", model)
 
 
 def read_reconstruction(model: str | Path) -> pycolmap.Reconstruction:
-    """pycolmap.Reconstruction of a text or binary model folder, with clear VrsErrors."""
+    """pycolmap.Reconstruction of a text or binary model folder, with clear VrsErrors: the
+    model's files are checked first (:func:`check_model`: pycolmap hangs on some truncated
+    binary files and reports other damage without naming the file)."""
     model = require_dir(model, "COLMAP model folder")
     _check_model_files(model)
+    check_model(model)
     try:
-        return pycolmap.Reconstruction(str(model))
+        with _model_files_only(model) as d:
+            return pycolmap.Reconstruction(str(d))
     except Exception as e:  # pycolmap raises ValueError/RuntimeError with C++ context
         raise VrsError(f"cannot read COLMAP model: {str(e).splitlines()[0][:200]}",
                        model) from None
+
+
+@contextlib.contextmanager
+def _model_files_only(model: Path) -> Iterator[Path]:
+    """``model``, or when it also holds COLMAP >= 3.12's rigs and frames files, a temporary
+    folder of links to its cameras, images and points3D files alone: pycolmap hangs on some
+    damaged frames files, and the images file holds each image's pose (read back the same
+    without them)."""
+    if not any((model / f"{p}.{e}").exists() for p in ("rigs", "frames") for e in ("bin", "txt")):
+        yield model
+        return
+    ext = "bin" if all((model / f"{p}.bin").is_file() for p in MODEL_PARTS) else "txt"
+    with tempfile.TemporaryDirectory(prefix="vrs_jax_colmap_") as d:  # fileio-exempt: links
+        for part in MODEL_PARTS:
+            os.symlink((model / f"{part}.{ext}").resolve(), Path(d) / f"{part}.{ext}")
+        yield Path(d)
+
+
+# ----------------------------------------------------------------------------- model checks
+
+# Parameter count of every COLMAP camera model, by id and by name (models.h).
+_ALL_MODELS = (("SIMPLE_PINHOLE", 3), ("PINHOLE", 4), ("SIMPLE_RADIAL", 4), ("RADIAL", 5),
+               ("OPENCV", 8), ("OPENCV_FISHEYE", 8), ("FULL_OPENCV", 12), ("FOV", 5),
+               ("SIMPLE_RADIAL_FISHEYE", 4), ("RADIAL_FISHEYE", 5), ("THIN_PRISM_FISHEYE", 12),
+               ("RAD_TAN_THIN_PRISM_FISHEYE", 16))
+_MODEL_PARAMS = dict(_ALL_MODELS)
+
+
+@dataclasses.dataclass
+class ModelIndex:
+    """What a COLMAP model's three files hold, read without pycolmap (for the checks).
+
+    cameras: id -> (model name, width, height, params); images: id -> (name, camera id,
+    qvec wxyz + tvec [7], number of 2D points); points: id -> (xyz [3], track [(image id,
+    2D point index)]); where: (file, line or None) of each record, keyed by (part, id).
+    """
+
+    cameras: dict = dataclasses.field(default_factory=dict)
+    images: dict = dataclasses.field(default_factory=dict)
+    points: dict = dataclasses.field(default_factory=dict)
+    where: dict = dataclasses.field(default_factory=dict)
+
+
+class _Bytes:
+    """A cursor over a binary file: each read past the end is a VrsError naming it."""
+
+    def __init__(self, path: Path):
+        self.path, self.data, self.off = path, path.read_bytes(), 0
+
+    def take(self, fmt: str):
+        try:
+            v = struct.unpack_from("<" + fmt, self.data, self.off)
+        except struct.error:
+            raise VrsError(f"truncated at byte {self.off} of {len(self.data)}",
+                           self.path) from None
+        self.off += struct.calcsize("<" + fmt)
+        return v
+
+    def count(self, record_bytes: int) -> int:
+        """A record count, refused when the file cannot hold that many records."""
+        (n,) = self.take("Q")
+        if n * record_bytes > len(self.data) - self.off:
+            raise VrsError(f"truncated or damaged: says {n} records, {len(self.data)} bytes "
+                           "cannot hold them", self.path)
+        return n
+
+    def name(self) -> str:
+        end = self.data.find(b"\0", self.off)
+        if end < 0:
+            raise VrsError(f"truncated at byte {self.off} (an image name)", self.path)
+        text, self.off = self.data[self.off:end].decode("utf-8", "replace"), end + 1
+        return text
+
+    def done(self) -> None:
+        if self.off != len(self.data):
+            raise VrsError(f"damaged: {len(self.data) - self.off} bytes after the last record",
+                           self.path)
+
+
+def _cameras_bin(path: Path, ix: ModelIndex) -> None:
+    f = _Bytes(path)
+    for _ in range(f.count(24)):
+        cid, mid, w, h = f.take("iiQQ")
+        if not 0 <= mid < len(_ALL_MODELS):
+            raise VrsError(f"camera {cid}: unknown camera model id {mid}", f.path)
+        name, n = _ALL_MODELS[mid]
+        _add(ix, "cameras", cid, (name, w, h, np.array(f.take(f"{n}d"))), (f.path, None))
+    f.done()
+
+
+def _images_bin(path: Path, ix: ModelIndex) -> None:
+    f = _Bytes(path)
+    for _ in range(f.count(73)):
+        iid, *pose = f.take("I7d")
+        (cid,) = f.take("I")
+        name = f.name()
+        n = f.count(24)
+        f.off += 24 * n
+        _add(ix, "images", iid, (name, cid, np.array(pose), n), (f.path, None))
+    f.done()
+
+
+def _points_bin(path: Path, ix: ModelIndex) -> None:
+    f = _Bytes(path)
+    for _ in range(f.count(51)):
+        pid, *xyz = f.take("Q3d")
+        f.take("3Bd")
+        track = f.take(f"{2 * f.count(8)}I")
+        _add(ix, "points", pid, (np.array(xyz), list(zip(track[::2], track[1::2],
+                                                          strict=True))), (f.path, None))
+    f.done()
+
+
+def _fields(path: Path, line: int, text: str, n: int, what: str, more: bool = False) -> list:
+    tok = text.split()
+    if len(tok) < n or (len(tok) != n and not more):
+        raise VrsError(f"malformed {what} line: {len(tok)} fields, expected "
+                       f"{'at least ' if more else ''}{n}", path, line)
+    return tok
+
+
+def _ints(tokens, path: Path, line: int, what: str) -> list[int]:
+    try:
+        return [int(t) for t in tokens]
+    except ValueError:
+        raise VrsError(f"malformed {what} line: expected integers, got "
+                       f"{' '.join(tokens)[:60]!r}", path, line) from None
+
+
+def _cameras_txt(path: Path, ix: ModelIndex) -> None:
+    for line, text in C.text_lines(path, "cameras.txt"):
+        if text.startswith("#"):
+            continue
+        tok = _fields(path, line, text, 4, "camera", more=True)
+        if tok[1] not in _MODEL_PARAMS:
+            raise VrsError(f"unknown camera model {tok[1]!r}", path, line)
+        (cid, w, h) = _ints([tok[0], tok[2], tok[3]], path, line, "camera")
+        _fields(path, line, text, 4 + _MODEL_PARAMS[tok[1]], f"{tok[1]} camera")
+        params = C.parse_floats(tok[4:], path, line, "camera line")
+        _add(ix, "cameras", cid, (tok[1], w, h, params), (path, line))
+
+
+def _images_txt(path: Path, ix: ModelIndex) -> None:
+    lines = C.read_text(path, "images.txt").splitlines()
+    i = 0
+    while i < len(lines):
+        text, line = lines[i].strip(), i + 1
+        i += 1
+        if not text or text.startswith("#"):
+            continue
+        tok = _fields(path, line, text, 10, "image")
+        (iid, cid) = _ints([tok[0], tok[8]], path, line, "image")
+        pose = C.parse_floats(tok[1:8], path, line, "image line")
+        pts = lines[i].split() if i < len(lines) else []
+        i += 1  # the image's 2D points: the next line, empty when it has none
+        if len(pts) % 3:
+            raise VrsError(f"malformed 2D points line of image {iid}: {len(pts)} fields, "
+                           "expected X Y POINT3D_ID triples", path, line + 1)
+        _add(ix, "images", iid, (tok[9], cid, pose, len(pts) // 3), (path, line))
+
+
+def _points_txt(path: Path, ix: ModelIndex) -> None:
+    for line, text in C.text_lines(path, "points3D.txt"):
+        if text.startswith("#"):
+            continue
+        tok = _fields(path, line, text, 8, "points3D", more=True)
+        if (len(tok) - 8) % 2:
+            raise VrsError("malformed points3D line: its track is not IMAGE_ID POINT2D_IDX "
+                           "pairs", path, line)
+        xyz = C.parse_floats(tok[1:4], path, line, "points3D line")
+        track = _ints(tok[8:], path, line, "points3D")
+        _add(ix, "points", _ints(tok[:1], path, line, "points3D")[0],
+             (xyz, list(zip(track[::2], track[1::2], strict=True))), (path, line))
+
+
+_READERS = {"bin": (_cameras_bin, _images_bin, _points_bin),
+            "txt": (_cameras_txt, _images_txt, _points_txt)}
+
+
+def _index(model: Path, ext: str) -> ModelIndex:
+    ix = ModelIndex()
+    for part, read in zip(MODEL_PARTS, _READERS[ext], strict=True):
+        read(model / f"{part}.{ext}", ix)
+    return ix
+
+
+def _add(ix: ModelIndex, part: str, key: int, value, where: tuple) -> None:
+    table = getattr(ix, part)
+    if key in table:
+        raise VrsError(f"{part} id {key} appears twice", *where)
+    table[key] = value
+    ix.where[part, key] = where
+
+
+def _check_index(ix: ModelIndex) -> None:
+    """Each record's values and every cross-reference of a model (VrsError naming the file
+    and line, or the record in a binary file)."""
+    for cid, (_, w, h, params) in ix.cameras.items():
+        if w <= 0 or h <= 0:
+            raise VrsError(f"camera {cid} has size {w}x{h}", *ix.where["cameras", cid])
+        if not np.all(np.isfinite(params)):
+            raise VrsError(f"camera {cid} has non-finite parameters", *ix.where["cameras", cid])
+    names: dict[str, int] = {}
+    for iid, (name, cid, pose, _) in ix.images.items():
+        where = ix.where["images", iid]
+        if cid not in ix.cameras:
+            raise VrsError(f"image {iid} ({name}) names camera {cid}, which is not in the "
+                           "model's cameras", *where)
+        if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:4]) < 1e-6:
+            raise VrsError(f"image {iid} ({name}) has a non-finite pose or a zero quaternion",
+                           *where)
+        if name in names:
+            raise VrsError(f"image name {name} appears twice (images {names[name]} and "
+                           f"{iid})", *where)
+        names[name] = iid
+    for pid, (xyz, track) in ix.points.items():
+        where = ix.where["points", pid]
+        if not np.all(np.isfinite(xyz)):
+            raise VrsError(f"point {pid} has non-finite coordinates", *where)
+        for iid, k in track:
+            if iid not in ix.images:
+                raise VrsError(f"point {pid} is seen in image {iid}, which is not in the "
+                               "model's images", *where)
+            if k >= ix.images[iid][3]:
+                raise VrsError(f"point {pid} is seen at 2D point {k} of image {iid}, which "
+                               f"has {ix.images[iid][3]}", *where)
+
+
+def _same(a: ModelIndex, b: ModelIndex) -> str | None:
+    """The first difference between two indexes of one model (None: they agree)."""
+    for part in ("cameras", "images", "points"):
+        ta, tb = getattr(a, part), getattr(b, part)
+        if ta.keys() != tb.keys():
+            return f"{part}: {len(ta)} records against {len(tb)}, or other ids"
+        for key, va in ta.items():
+            for x, y in zip(va, tb[key], strict=True):
+                if isinstance(x, np.ndarray):
+                    if not np.allclose(x, y, rtol=1e-6, atol=1e-9):
+                        return f"{part} id {key} differs"
+                elif x != y:
+                    return f"{part} id {key} differs"
+    return None
+
+
+def check_model(model: str | Path) -> ModelIndex:
+    """Read a model's cameras, images and points3D files (binary where COLMAP reads binary:
+    all three .bin files present, else text) and check them: sizes, counts, fields, finite
+    values, and that every image's camera and every point's image exist. A folder holding a
+    complete binary and a complete text model must hold the same model.
+
+    Raises VrsError naming the file (and its line) and the problem.
+    """
+    model = Path(model)
+    has = {e: all((model / f"{p}.{e}").is_file() for p in MODEL_PARTS)
+           for e in ("bin", "txt")}
+    ix = _index(model, "bin" if has["bin"] else "txt")
+    _check_index(ix)
+    if has["bin"] and has["txt"]:
+        diff = _same(ix, _index(model, "txt"))
+        if diff:
+            raise VrsError(f"holds a binary and a text COLMAP model that disagree ({diff}); "
+                           "COLMAP reads the .bin files: remove the stale model", model)
+    return ix
 
 
 def _cam_from_world(image) -> tuple[np.ndarray, np.ndarray]:
@@ -109,34 +382,14 @@ def read_points3d_xyz(model: str | Path) -> np.ndarray | None:
     ``images.bin``), so this reads just the coordinates from the file itself.
     """
     model = Path(model)
-    txt, binf = model / "points3D.txt", model / "points3D.bin"
-    if txt.is_file():
-        pts = []
-        for lineno, text in C.text_lines(txt, "points3D.txt"):
-            if text.startswith("#"):
-                continue
-            v = C.parse_floats(text.split()[1:4], txt, lineno, "points3D line")
-            if v.size != 3:
-                raise VrsError("malformed points3D line", txt, lineno)
-            pts.append(v)
-        return np.asarray(pts, np.float64).reshape(-1, 3)
-    if not binf.is_file():
+    ix = ModelIndex()
+    if (model / "points3D.txt").is_file():
+        _points_txt(model / "points3D.txt", ix)
+    elif (model / "points3D.bin").is_file():
+        _points_bin(model / "points3D.bin", ix)
+    else:
         return None
-    data = binf.read_bytes()
-    try:
-        (n,) = struct.unpack_from("<Q", data, 0)
-        off, pts = 8, np.empty((n, 3))
-        # Per point: id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64, then
-        # track length x (image id i32, point2D index i32).
-        for k in range(n):
-            pts[k] = struct.unpack_from("<3d", data, off + 8)
-            (track,) = struct.unpack_from("<Q", data, off + 43)
-            off += 51 + 8 * track
-    except struct.error:
-        raise VrsError("truncated or malformed points3D.bin", binf) from None
-    if off != len(data):
-        raise VrsError(f"malformed points3D.bin ({len(data) - off} trailing bytes)", binf)
-    return pts
+    return np.asarray([xyz for xyz, _ in ix.points.values()], np.float64).reshape(-1, 3)
 
 
 def default_images_dir(model: Path) -> Path | None:
