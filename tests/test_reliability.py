@@ -934,7 +934,8 @@ def test_set_values_in_range_still_pass():
 
 
 @pytest.mark.parametrize("edit", ["nerf batch_size 0", "null names", "null k_max",
-                                  "null files", "files sha256 int"])
+                                  "null files", "files sha256 int", "stats str",
+                                  "stats ilm steps str"])
 def test_hand_edited_map_json_values_are_one_line(edit, tiny_map, tmp_path):
     from vrs_jax import maps
 
@@ -945,6 +946,10 @@ def test_hand_edited_map_json_values_are_one_line(edit, tiny_map, tmp_path):
         meta["config"]["nerf"]["batch_size"] = 0
     elif edit == "files sha256 int":
         meta["files"]["egm.npz"]["sha256"] = 5
+    elif edit == "stats str":  # was an AttributeError traceback
+        meta["stats"] = "x"
+    elif edit == "stats ilm steps str":  # was a TypeError traceback
+        meta["stats"]["ilm"]["steps"] = "800"
     else:
         meta[edit.split()[1]] = None
     (d / "map.json").write_text(json.dumps(meta))
@@ -1380,3 +1385,39 @@ def test_colmap_export_never_leaves_two_models(tiny_map, small_synthetic_scene, 
     assert sorted(p.suffix for p in d.iterdir()) == [".txt"] * 5
     s = load_scene("colmap", d, images=small_synthetic_scene)
     assert len(s.names) == 24
+
+
+@pytest.mark.parametrize("edit,problem", [
+    (("format", "bogus"), "unknown dataset format 'bogus'"),
+    (("options", [["query_every", "x"]]), "query_every must be an integer, got 'x'")])
+def test_hand_edited_map_source_is_one_line_naming_map_json(edit, problem, tiny_map, tmp_path,
+                                                            capsys):
+    """``localize`` with the map's own queries reads the dataset the map records: an edited
+    reader option there was a ValueError traceback, an edited format blamed no file."""
+    from vrs_jax.cli import localize as cli
+
+    d = tmp_path / "map"
+    shutil.copytree(tiny_map, d, ignore=shutil.ignore_patterns("nerf"))
+    meta = json.loads((d / "map.json").read_text())
+    meta["source"][edit[0]] = edit[1]
+    (d / "map.json").write_text(json.dumps(meta))
+    rc = cli.main(["--map", str(d), "--config", "test", "--mode", "real", "--quiet",
+                   "--out", str(tmp_path / "run")])
+    line = assert_one_error_line(rc, capsys.readouterr().err, d / "map.json")
+    assert problem in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_sfm_of_a_single_photo_is_refused_before_colmap(tmp_path, capfd):
+    """``train --format images`` on a folder of one photo ran COLMAP's SfM, which printed its
+    own warning and error lines before ours; now one line before any SfM."""
+    from vrs_jax.cli import train
+
+    root = tmp_path / "photos"
+    root.mkdir()
+    fileio.write_image(root / "a.png", np.full((60, 80, 3), 128, np.uint8))
+    rc = train.main(["--format", "images", "--root", str(root), "--out", str(tmp_path / "m"),
+                     "--config", "test", "--steps", "2", "--quiet"])
+    err = capfd.readouterr().err
+    line = assert_one_error_line(rc, err, root)
+    assert "at least 2 photos" in line and len(err.strip().splitlines()) == 1, err

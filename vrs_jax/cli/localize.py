@@ -45,6 +45,7 @@ from vrs_jax.cli.common import (
     record_run,
     start_run,
 )
+from vrs_jax.data.readers import FORMATS
 from vrs_jax.data.readers.query_list import query_scene as query_list_scene
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
@@ -134,10 +135,14 @@ def query_scene(m: maps.Map, args, sfm_dir: Path):
         sfm_dir = Path(args.map) / "sfm"  # photos: the map's own SfM poses (same frame)
         if not src.format or not src.root:
             raise VrsError("the map records no dataset; pass --format and --root", args.map)
+        meta = Path(args.map) / "map.json"
+        if src.format not in (*FORMATS, "images"):
+            raise VrsError(f"source: unknown dataset format {src.format!r} (an edited "
+                           "map.json?)", meta)
         args.fmt, args.root = src.format, src.root
         opts = dict(src.options)
-        args.query_every = int(opts["query_every"]) if "query_every" in opts else None
-        args.downscale = int(opts["downscale"]) if "downscale" in opts else None
+        args.query_every = _source_count(opts, "query_every", meta)
+        args.downscale = _source_count(opts, "downscale", meta)
         args.opt = [f"{k}={v}" for k, v in opts.items() if k not in ("query_every",
                                                                    "downscale")]
     elif args.root is None or args.fmt is None:
@@ -149,6 +154,17 @@ def query_scene(m: maps.Map, args, sfm_dir: Path):
                        "--query-every N)", scene.root)
     refuse_map_images(m, queries)
     return queries
+
+
+def _source_count(opts: dict, key: str, meta: Path) -> int | None:
+    """The integer reader option ``key`` a map's source records (None when absent)."""
+    if key not in opts:
+        return None
+    try:
+        return int(opts[key])
+    except (TypeError, ValueError):
+        raise VrsError(f"source option {key} must be an integer, got {opts[key]!r} (an "
+                       "edited map.json?)", meta) from None
 
 
 def refuse_map_images(m: maps.Map, queries) -> None:
