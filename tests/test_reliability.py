@@ -1421,3 +1421,61 @@ def test_sfm_of_a_single_photo_is_refused_before_colmap(tmp_path, capfd):
     err = capfd.readouterr().err
     line = assert_one_error_line(rc, err, root)
     assert "at least 2 photos" in line and len(err.strip().splitlines()) == 1, err
+
+
+def test_ctrl_c_inside_a_gc_callback_still_stops_the_program():
+    """Ctrl-C landing in a garbage-collector callback (jax registers one; it runs often) was
+    printed by Python as an "ignored" exception, and the command went on working. Now the
+    program stops: one 'interrupted' line, status 130."""
+    code = ("import gc, time\n"
+            "from vrs_jax.errors import cli_main\n"
+            "def slow(phase, info):\n"
+            "    if phase == 'start':\n"
+            "        print('in gc', flush=True)\n"
+            "        time.sleep(2)\n"
+            "def work():\n"
+            "    gc.callbacks.append(slow)\n"
+            "    gc.collect()\n"
+            "    gc.callbacks.remove(slow)\n"
+            "    time.sleep(20)\n"
+            "    print('went on working', flush=True)\n"
+            "raise SystemExit(cli_main(work)())\n")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == "in gc\n"
+        time.sleep(0.5)  # inside the callback
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill()
+    assert p.returncode == 130 and "went on working" not in out, (out, err)
+    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
+    """Ctrl-C in the seconds ``python -m experiments.NAME`` spends importing jax printed a
+    traceback through the imports (killed by SIGINT). The wrappers import their command with
+    ``errors.program_main``: one line, status 130. The imported module sleeps here."""
+    (tmp_path / "slow_cli.py").write_text("import time\nprint('importing', flush=True)\n"
+                                          "time.sleep(30)\ndef main():\n    return 0\n")
+    code = ("from vrs_jax.errors import program_main\n"
+            "main = program_main('slow_cli', '__main__')\n"
+            "raise SystemExit(main())\n")
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{tmp_path}"}
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == "importing\n"
+        time.sleep(0.3)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=20)
+    finally:
+        p.kill()
+    assert p.returncode == 130, err
+    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    from experiments import localize as wrapper
+    from vrs_jax.cli import localize
+
+    assert wrapper.main is localize.main
