@@ -1212,10 +1212,13 @@ def test_benchmark_outputs_are_never_replaced_silently(tiny_map, tmp_path, capsy
         (figures.main, ["--out", str(m), "--figures", "timing", "--localize-json", str(old),
                         "--overwrite"], m),
         (confidence.main, ["--from-json", str(old), "--json", str(old), "--overwrite"], old),
+        # not outputs, but tracebacks before (FileNotFoundError, JSONDecodeError)
+        (confidence.main, ["--from-json", str(tmp_path / "nope.json")], "not found"),
+        (confidence.main, ["--from-json", str(png)], "corrupt"),
     ]
     for main, args, named in cases:
         line = assert_one_error_line(main(args), capsys.readouterr().err, named)
-        assert "already exists" in line or "map" in line or "input" in line, line
+        assert any(w in line for w in ("already exists", "map", "input", "found", "corrupt"))
     assert snapshot(tmp_path) == before
     assert not tmp_files(tmp_path)
 
