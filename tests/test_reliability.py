@@ -1482,3 +1482,31 @@ def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
     from vrs_jax.cli import localize
 
     assert wrapper.main is localize.main
+
+
+def test_colmap_export_on_a_full_disk_keeps_the_old_model(tiny_map, tmp_path):
+    """pycolmap does not report a failed write: on a full disk the export left truncated
+    model files and said it had written the model (exit 0). Now it is written aside, read
+    back whole before it replaces anything, else one line; an earlier model stays."""
+    d = _colmap_model(tiny_map, tmp_path / "cm", text=True)
+    before = snapshot(d)
+    code = ("import resource, signal\n"
+            "from vrs_jax import maps\n"
+            "from vrs_jax.egm.colmap import export_colmap\n"
+            "from vrs_jax.errors import VrsError\n"
+            f"egm = maps.load_map({str(tiny_map)!r}, require_ilm=False).egm\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (20000, resource.RLIM_INFINITY))\n"
+            "for text in (True, False):\n"
+            "    try:\n"
+            f"        export_colmap(egm, {str(d)!r}, text=text, overwrite=True)\n"
+            "        print('written')\n"
+            "    except VrsError as e:\n"
+            "        print('error:', e)\n")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                       capture_output=True, timeout=240)
+    lines = r.stdout.strip().splitlines()
+    assert len(lines) == 2 and all(ln.startswith(f"error: {d}: cannot write the COLMAP model")
+                                   for ln in lines), r.stdout + r.stderr
+    assert snapshot(d) == before
