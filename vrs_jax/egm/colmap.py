@@ -95,6 +95,6 @@ def _check_written(rec: pycolmap.Reconstruction, tmp: Path, d: Path) -> None:
     except VrsError as e:
         raise VrsError(f"cannot write the COLMAP model (disk full?): {e.problem}", d) from None
     want = (rec.num_cameras(), rec.num_images(), rec.num_points3D())
-    if (len(ix.cameras), len(ix.images), len(ix.points)) != want:
+    if (len(ix.cameras), len(ix.images), len(ix.point_id)) != want:
         raise VrsError("cannot write the COLMAP model (disk full?): it reads back with fewer "
                        "records", d)

@@ -130,14 +130,27 @@ class ModelIndex:
     """What a COLMAP model's three files hold, read without pycolmap (for the checks).
 
     cameras: id -> (model name, width, height, params); images: id -> (name, camera id,
-    qvec wxyz + tvec [7], number of 2D points); points: id -> (xyz [3], track [(image id,
-    2D point index)]); where: (file, line or None) of each record, keyed by (part, id).
+    qvec wxyz + tvec [7], number of 2D points); where: (file, line or None) of each camera
+    and image, keyed by (part, id). The points as arrays (a model holds millions):
+    point_id [M], xyz [M, 3], per track element its point's row [T], image id [T] and 2D
+    point index [T]; points_file and points_line [M] (None for a binary file).
     """
 
     cameras: dict = dataclasses.field(default_factory=dict)
     images: dict = dataclasses.field(default_factory=dict)
-    points: dict = dataclasses.field(default_factory=dict)
     where: dict = dataclasses.field(default_factory=dict)
+    point_id: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    xyz: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    track_row: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    track_image: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    track_idx: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    points_file: Path | None = None
+    points_line: np.ndarray | None = None
+
+    def point_where(self, row: int) -> tuple:
+        """(file, line or None) of point row ``row``, for a VrsError."""
+        return self.points_file, (None if self.points_line is None
+                                  else int(self.points_line[row]))
 
 
 class _Bytes:
@@ -199,15 +212,50 @@ def _images_bin(path: Path, ix: ModelIndex) -> None:
     f.done()
 
 
+_POINT_HEAD = struct.Struct("<Q")
+
+
+def _gather(buf: np.ndarray, starts: np.ndarray, n: int, dtype: str) -> np.ndarray:
+    """The ``dtype`` values of ``n`` bytes at each of ``starts`` in ``buf``."""
+    return buf[starts[:, None] + np.arange(n)].copy().view(dtype).reshape(len(starts), -1)
+
+
 def _points_bin(path: Path, ix: ModelIndex) -> None:
+    # Per point: id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64 (51 bytes), then
+    # the track: (image id u32, 2D point index u32) pairs. One pass finds the records, numpy
+    # reads them.
     f = _Bytes(path)
-    for _ in range(f.count(51)):
-        pid, *xyz = f.take("Q3d")
-        f.take("3Bd")
-        track = f.take(f"{2 * f.count(8)}I")
-        _add(ix, "points", pid, (np.array(xyz), list(zip(track[::2], track[1::2],
-                                                          strict=True))), (f.path, None))
+    n, data = f.count(51), f.data
+    starts, lens, off = np.empty(n, np.int64), np.empty(n, np.int64), f.off
+    for k in range(n):
+        if off + 51 > len(data):
+            raise VrsError(f"truncated at byte {off} of {len(data)} (point {k + 1} of {n})",
+                           path)
+        (tl,) = _POINT_HEAD.unpack_from(data, off + 43)
+        starts[k], lens[k] = off, tl
+        off += 51 + 8 * tl
+    if off > len(data):
+        raise VrsError(f"truncated at byte {len(data)} (the track of point {n})", path)
+    f.off = off
     f.done()
+    buf = np.frombuffer(data, np.uint8)
+    first = np.repeat(starts + 51, lens) + 8 * (np.arange(int(lens.sum()))
+                                                 - np.repeat(np.cumsum(lens) - lens, lens))
+    _set_points(ix, _gather(buf, starts, 8, "<u8")[:, 0].astype(np.int64),
+                _gather(buf, starts + 8, 24, "<f8"), lens,
+                _gather(buf, first, 4, "<u4")[:, 0], _gather(buf, first + 4, 4, "<u4")[:, 0],
+                path, None)
+
+
+def _set_points(ix: ModelIndex, ids, xyz, lens, image, idx, path: Path, lines) -> None:
+    ix.point_id, ix.xyz = np.asarray(ids, np.int64), np.asarray(xyz, np.float64).reshape(-1, 3)
+    ix.track_row = np.repeat(np.arange(len(ix.point_id)), lens)
+    ix.track_image, ix.track_idx = np.asarray(image, np.int64), np.asarray(idx, np.int64)
+    ix.points_file, ix.points_line = path, lines
+    uniq, first = np.unique(ix.point_id, return_index=True)
+    if len(uniq) != len(ix.point_id):
+        dup = np.setdiff1d(np.arange(len(ix.point_id)), first)[0]
+        raise VrsError(f"points id {ix.point_id[dup]} appears twice", *ix.point_where(dup))
 
 
 def _fields(path: Path, line: int, text: str, n: int, what: str, more: bool = False) -> list:
@@ -259,17 +307,24 @@ def _images_txt(path: Path, ix: ModelIndex) -> None:
 
 
 def _points_txt(path: Path, ix: ModelIndex) -> None:
-    for line, text in C.text_lines(path, "points3D.txt"):
-        if text.startswith("#"):
-            continue
-        tok = _fields(path, line, text, 8, "points3D", more=True)
-        if (len(tok) - 8) % 2:
-            raise VrsError("malformed points3D line: its track is not IMAGE_ID POINT2D_IDX "
-                           "pairs", path, line)
-        xyz = C.parse_floats(tok[1:4], path, line, "points3D line")
-        track = _ints(tok[8:], path, line, "points3D")
-        _add(ix, "points", _ints(tok[:1], path, line, "points3D")[0],
-             (xyz, list(zip(track[::2], track[1::2], strict=True))), (path, line))
+    rows = [(line, text.split()) for line, text in C.text_lines(path, "points3D.txt")
+            if not text.startswith("#")]
+    for line, tok in rows:
+        if len(tok) < 8 or (len(tok) - 8) % 2:
+            raise VrsError(f"malformed points3D line: {len(tok)} fields, expected 8 then "
+                           "IMAGE_ID POINT2D_IDX pairs", path, line)
+    try:
+        ids = np.fromiter((int(t[0]) for _, t in rows), np.int64, len(rows))
+        xyz = np.fromiter((float(x) for _, t in rows for x in t[1:4]), np.float64)
+        track = np.fromiter((int(x) for _, t in rows for x in t[8:]), np.int64).reshape(-1, 2)
+    except ValueError:  # find the line, for the message
+        for line, tok in rows:
+            C.parse_floats(tok[1:4], path, line, "points3D line")
+            _ints([tok[0], *tok[8:]], path, line, "points3D")
+        raise
+    lens = np.array([(len(t) - 8) // 2 for _, t in rows], np.int64)
+    _set_points(ix, ids, xyz, lens, track[:, 0], track[:, 1], path,
+                np.array([line for line, _ in rows], np.int64))
 
 
 _READERS = {"bin": (_cameras_bin, _images_bin, _points_bin),
@@ -312,22 +367,33 @@ def _check_index(ix: ModelIndex) -> None:
             raise VrsError(f"image name {name} appears twice (images {names[name]} and "
                            f"{iid})", *where)
         names[name] = iid
-    for pid, (xyz, track) in ix.points.items():
-        where = ix.where["points", pid]
-        if not np.all(np.isfinite(xyz)):
-            raise VrsError(f"point {pid} has non-finite coordinates", *where)
-        for iid, k in track:
-            if iid not in ix.images:
-                raise VrsError(f"point {pid} is seen in image {iid}, which is not in the "
-                               "model's images", *where)
-            if k >= ix.images[iid][3]:
-                raise VrsError(f"point {pid} is seen at 2D point {k} of image {iid}, which "
-                               f"has {ix.images[iid][3]}", *where)
+    bad = np.flatnonzero(~np.isfinite(ix.xyz).all(axis=1))
+    if len(bad):
+        raise VrsError(f"point {ix.point_id[bad[0]]} has non-finite coordinates",
+                       *ix.point_where(bad[0]))
+    ids = np.array(sorted(ix.images), np.int64)
+    n2d = np.array([ix.images[i][3] for i in ids], np.int64)
+    at = np.clip(np.searchsorted(ids, ix.track_image), 0, max(len(ids) - 1, 0))
+    known = (ids[at] == ix.track_image) if len(ids) else np.zeros(len(at), bool)
+    for e in np.flatnonzero(~known)[:1]:
+        row = ix.track_row[e]
+        raise VrsError(f"point {ix.point_id[row]} is seen in image {ix.track_image[e]}, which "
+                       "is not in the model's images", *ix.point_where(row))
+    for e in np.flatnonzero(known & (ix.track_idx >= n2d[at]))[:1]:
+        row = ix.track_row[e]
+        raise VrsError(f"point {ix.point_id[row]} is seen at 2D point {ix.track_idx[e]} of "
+                       f"image {ix.track_image[e]}, which has {n2d[at[e]]}",
+                       *ix.point_where(row))
 
 
 def _same(a: ModelIndex, b: ModelIndex) -> str | None:
     """The first difference between two indexes of one model (None: they agree)."""
-    for part in ("cameras", "images", "points"):
+    if not (np.array_equal(a.point_id, b.point_id) and np.allclose(a.xyz, b.xyz, rtol=1e-6,
+                                                                   atol=1e-9)
+            and all(np.array_equal(getattr(a, k), getattr(b, k))
+                    for k in ("track_row", "track_image", "track_idx"))):
+        return f"points: {len(a.point_id)} against {len(b.point_id)}, or other values"
+    for part in ("cameras", "images"):
         ta, tb = getattr(a, part), getattr(b, part)
         if ta.keys() != tb.keys():
             return f"{part}: {len(ta)} records against {len(tb)}, or other ids"
@@ -389,7 +455,7 @@ def read_points3d_xyz(model: str | Path) -> np.ndarray | None:
         _points_bin(model / "points3D.bin", ix)
     else:
         return None
-    return np.asarray([xyz for xyz, _ in ix.points.values()], np.float64).reshape(-1, 3)
+    return ix.xyz
 
 
 def default_images_dir(model: Path) -> Path | None:
