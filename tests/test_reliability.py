@@ -73,6 +73,30 @@ def run_cli(module: str, args: list[str], fsize: int | None = None, timeout: flo
                           capture_output=True, timeout=timeout)
 
 
+def interrupt_program(code: str, first_line: str, wait: float = 0.5,
+                      path: Path | None = None) -> tuple[int, str, str]:
+    """Run ``python -c CODE``, send SIGINT ``wait`` s after it prints ``first_line``:
+    (exit status, rest of stdout, stderr)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, [REPO, path] if path else
+                                                          [REPO]))}
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == first_line + "\n"
+        time.sleep(wait)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill()
+    return p.returncode, out, err
+
+
+def assert_interrupted(rc: int, err: str) -> None:
+    """Status 130 and one 'interrupted' line, no traceback."""
+    assert rc == 130, err
+    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+
+
 def unwritable(tmp_path: Path, kind: str) -> Path:
     """An output path that cannot be created, even by root."""
     if kind == "parent_is_file":
@@ -1263,18 +1287,7 @@ def test_ctrl_c_while_the_interpreter_exits_is_one_line():
             "atexit.register(time.sleep, 30)\n"
             "main = cli_main(lambda: print('done', flush=True))\n"
             "raise SystemExit(main())\n")
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert p.stdout.readline() == "done\n"
-        time.sleep(0.5)  # in the exit handler
-        p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=20)
-    finally:
-        p.kill()
-    assert p.returncode == 130, err
-    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    assert_interrupted(*interrupt_program(code, "done")[::2])
 
 
 # ----------------------------------------------------------------------------- COLMAP models
@@ -1443,18 +1456,9 @@ def test_ctrl_c_inside_a_gc_callback_still_stops_the_program():
             "    time.sleep(20)\n"
             "    print('went on working', flush=True)\n"
             "raise SystemExit(cli_main(work)())\n")
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert p.stdout.readline() == "in gc\n"
-        time.sleep(0.5)  # inside the callback
-        p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=30)
-    finally:
-        p.kill()
-    assert p.returncode == 130 and "went on working" not in out, (out, err)
-    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    rc, out, err = interrupt_program(code, "in gc")
+    assert "went on working" not in out, out
+    assert_interrupted(rc, err)
 
 
 def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
@@ -1466,18 +1470,7 @@ def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
     code = ("from vrs_jax.errors import program_main\n"
             "main = program_main('slow_cli', '__main__')\n"
             "raise SystemExit(main())\n")
-    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{tmp_path}"}
-    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert p.stdout.readline() == "importing\n"
-        time.sleep(0.3)
-        p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=20)
-    finally:
-        p.kill()
-    assert p.returncode == 130, err
-    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+    assert_interrupted(*interrupt_program(code, "importing", 0.3, tmp_path)[::2])
     from experiments import localize as wrapper
     from vrs_jax.cli import localize
 
