@@ -43,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-measure every row (do not reuse recorded runs)")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/ablation.json)")
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -79,6 +80,7 @@ def ablation_table(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "ablation")])
     bad = [s for s in args.sizes if s not in PATCH_SIZES]
     if bad:
         raise VrsError(f"--sizes must be among {PATCH_SIZES}, got {bad}")

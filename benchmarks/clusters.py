@@ -80,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/clusters.json)")
     p.add_argument("--figure", default=None,
                    help=f"output PNG (default {common.DEFAULT_JSON_DIR}/clusters.png)")
+    common.add_overwrite_arg(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -299,6 +300,10 @@ def room_table(rows: list[dict], n_rooms: int) -> str:
         title="Render-mode recall per room (room 0: the 8 m hall; 1-3: the 3.5 m offices)")
 
 
+def figure_path(args) -> Path:
+    return Path(args.figure) if args.figure else Path(common.DEFAULT_JSON_DIR) / "clusters.png"
+
+
 def figure(path: Path, ctxs: dict[str, common.SceneCtx], layout, map_rows: dict) -> str:
     """PNG of the reference cameras coloured by cluster, one panel per clustered map."""
     try:
@@ -342,10 +347,9 @@ def figure(path: Path, ctxs: dict[str, common.SceneCtx], layout, map_rows: dict)
     axes[-1, 0].set_xlabel("x (m); black: walls (doorways in the partitions), red dashed: "
                            "grid cell borders")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return f"wrote {path}"
+    from benchmarks.figures import save
+
+    return f"wrote {save(fig, path)}"
 
 
 @cli_main
@@ -354,6 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     from vrs_jax.eval import metrics
 
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "clusters"), figure_path(args)])
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     only = [m.strip() for m in args.only.split(",") if m.strip()]
     if not modes or any(m not in MODES for m in modes):
@@ -384,8 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         ctxs[label] = ctx
         map_rows[label] = map_row(label, ctx, build_s, ref_rooms)
         acc_rows += localize_rows(label, ctx, modes, args, scale, q_rooms)
-    fig_msg = figure(Path(args.figure) if args.figure else
-                     Path(common.DEFAULT_JSON_DIR) / "clusters.png", ctxs, layout, map_rows)
+    fig_msg = figure(figure_path(args), ctxs, layout, map_rows)
     print()
     print(maps_table(list(map_rows.values())))
     print()

@@ -561,3 +561,47 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], title: str | No
 
 def json_path(args, name: str) -> Path:
     return Path(args.json) if args.json else Path(DEFAULT_JSON_DIR) / f"{name}.json"
+
+
+# ----------------------------------------------------------------------------- outputs
+
+INPUT_ARGS = ("map", "series_egm", "data_root", "synthetic_root", "root", "data",
+              "localize_json", "from_json")
+"""Arguments of the benchmarks that name what they read (``NAME=DIR`` items: the DIR)."""
+
+
+def add_overwrite_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing output files (--json, --plot, the figures)")
+
+
+def input_paths(args: argparse.Namespace) -> list[str]:
+    """The paths a benchmark reads, from its :data:`INPUT_ARGS`."""
+    out = []
+    for name in INPUT_ARGS:
+        value = getattr(args, name, None)
+        for item in value if isinstance(value, list) else [value]:
+            if item and name in ("map", "series_egm") and isinstance(value, list):
+                item = item.partition("=")[2]
+            if item:
+                out.append(str(item))
+    return out
+
+
+def check_outputs(args: argparse.Namespace, paths: Sequence[str | Path | None]) -> None:
+    """Before any work, each output file of a benchmark (None: not written): never an input
+    of the run nor part of a map folder, and an existing file is refused unless --overwrite
+    (:mod:`vrs_jax.fileio`'s rules, one VrsError line naming it); its folder must be
+    writable."""
+    from vrs_jax import fileio
+
+    inputs = input_paths(args)
+    for path in paths:
+        if path is None:
+            continue
+        fileio.refuse_map_part(path)
+        fileio.check_apart(path, inputs)
+        if Path(path).is_dir():
+            raise VrsError("is a folder; name the file to write", path)
+        fileio.check_new(path, getattr(args, "overwrite", False))
+        fileio.check_writable(Path(path).parent)

@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 
-from vrs_jax import maps
+from benchmarks import common
+from vrs_jax import fileio, maps
 from vrs_jax.data import synthetic
 from vrs_jax.data.readers import load_scene
-from vrs_jax.errors import cli_main
+from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.localize import get_config
 from vrs_jax.localize.batch import localize_scene
@@ -65,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from-json", default=None, metavar="FILE",
                    help="re-evaluate the current thresholds on a --json written before "
                         "(no localization)")
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -180,8 +181,12 @@ def describe(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [args.json])
     if args.from_json:
-        rows = json.loads(Path(args.from_json).read_text())["rows"]
+        rows = fileio.read_json(args.from_json, "--from-json file").get("rows")
+        if not isinstance(rows, list):
+            raise VrsError("has no 'rows' list: not a benchmarks.confidence --json",
+                           args.from_json)
         for k, v in reevaluate(rows, ConfidenceConfig()).items():
             print(f"{k}: wrong flagged {v['wrong_flagged']}/{v['wrong']}, right wrongly "
                   f"flagged {v['right_flagged']}/{v['right']}")
@@ -196,8 +201,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{v['right_flagged']}/{v['right']}; verdicts {v['verdicts']}")
     print(describe(ev["rows"]))
     if args.json:
-        Path(args.json).write_text(json.dumps({"config": dataclasses.asdict(ConfidenceConfig()),
-                                               **ev}, indent=1))
+        common.write_json(args.json, {"config": dataclasses.asdict(ConfidenceConfig()), **ev})
     return 0
 
 

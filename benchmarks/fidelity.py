@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import common
 from vrs_jax.errors import VrsError, cli_main
 
 
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--work", default=None,
                    help="folder of the maps built (reused across runs; default beside --json)")
     p.add_argument("--json", required=True, help="output JSON file")
+    common.add_overwrite_arg(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -222,7 +224,6 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
 
 
 def run(args) -> dict[str, Any]:
-    from benchmarks import common
     from benchmarks.common import environment, fmt, table, write_json
     from vrs_jax import localize, maps
     from vrs_jax.nerf import ilm as ilm_lib
@@ -327,7 +328,9 @@ def evals_per_patch(m, lcfg) -> float:
 
 @cli_main
 def main(argv: list[str] | None = None) -> None:
-    run(build_parser().parse_args(argv))
+    args = build_parser().parse_args(argv)
+    common.check_outputs(args, [args.json])
+    run(args)
 
 
 if __name__ == "__main__":

@@ -68,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     common.add_scene_args(p, default_scenes=("synthetic",))
     p.add_argument("--out", default="outputs/figures", help="folder of the PNGs")
+    common.add_overwrite_arg(p)
     p.add_argument("--figures", default=",".join(FIGURES),
                    help=f"comma-separated figures to make among {', '.join(FIGURES)}")
     p.add_argument("--cluster-scenes", default="synthetic,lego",
@@ -497,6 +498,23 @@ def fig_timing(doc: dict, out_dir: Path) -> tuple[Path, dict]:
 # ----------------------------------------------------------------------------- main
 
 
+def output_paths(args, which: list[str], match_modes: list[str], out: Path) -> list[Path]:
+    """Every file a run of these figures may write (checked before any work)."""
+    paths = [out / "figures.json"]
+    if "clusters" in which:
+        paths += [out / f"clusters_{n}.png" for n in common.parse_scenes(args.cluster_scenes)]
+    paths += [out / f"{f}.png" for f, name in (("cumulative_errors", "curves"),
+                                               ("timing", "timing")) if name in which]
+    for name in common.parse_scenes(args.scenes):
+        if "matches" in which or "render" in which:  # render draws the match figure first
+            modes = match_modes if "matches" in which else ["render"]
+            paths += [out / f"matches_{name}{'' if m == 'render' else '_' + m}.png"
+                      for m in modes]
+        if "render" in which:
+            paths.append(out / f"render_vs_real_{name}.png")
+    return paths
+
+
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -508,6 +526,7 @@ def main(argv: list[str] | None = None) -> int:
     if not match_modes or any(m not in ("render", "real") for m in match_modes):
         raise VrsError(f"--match-modes must list render and/or real, got {args.match_modes!r}")
     out = Path(args.out)
+    common.check_outputs(args, output_paths(args, which, match_modes, out))
     doc = common.base_doc("figures", args, argv)
     paths: list[Path] = []
     info: dict = {}

@@ -58,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "rows (repeatable), e.g. early_exit_inliers=40 or guided_passes=0")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -163,6 +164,7 @@ def latency_table(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "localize")])
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if not modes or any(m not in MODES for m in modes):
         from vrs_jax.errors import VrsError

@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/map_size.json)")
     map_scale.add_args(p)
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -89,6 +90,8 @@ def nerf_weight_bytes() -> list[dict]:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "map_size_series" if args.series
+                                                 else "map_size"), args.plot])
     doc = common.base_doc("map_size", args, argv)
     if args.series:
         map_scale.run(args, doc)

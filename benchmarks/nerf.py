@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import common
 from benchmarks.common import environment
 from vrs_jax import fileio
 from vrs_jax.errors import VrsError, cli_main
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset format: 7scenes, cambridge, aachen, nerf, llff, colmap")
     p.add_argument("--minutes", type=float, required=True, help="training budget per config")
     p.add_argument("--json", required=True, help="output JSON file")
+    common.add_overwrite_arg(p)
     p.add_argument("--config", action="append", default=None,
                    help="config(s) to run, repeatable (default: paper and cpu-small)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -156,6 +158,7 @@ def print_table(results: list[dict]) -> None:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [args.json])
     if args.minutes <= 0:
         raise VrsError("--minutes must be positive")
     configs = args.config or ["paper", "cpu-small"]

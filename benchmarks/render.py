@@ -61,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip timing the full-image renders (still counts their rays)")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/render.json)")
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -235,6 +236,7 @@ def sweep_table(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "render")])
     bad = [s for s in args.sizes if s not in PATCH_SIZES]
     if bad:
         raise VrsError(f"--sizes must be among {PATCH_SIZES}, got {bad}")

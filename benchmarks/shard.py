@@ -48,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="JAX platform of the workers: cpu (forced host devices) or gpu/tpu")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/shard.json)")
+    common.add_overwrite_arg(p)
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--map-dir", default=None, help=argparse.SUPPRESS)
     p.add_argument("--scene-root", default=None, help=argparse.SUPPRESS)
@@ -107,6 +108,8 @@ def run_worker(n: int, args: argparse.Namespace, map_dir: Path, scene_root: Path
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.worker is None:
+        common.check_outputs(args, [common.json_path(args, "shard")])
     if args.worker is not None:
         print(json.dumps(worker(args)))
         return 0

@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
                    f"(default {common.DEFAULT_WORK}/sift/NAME; replaced)")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/sift_reference.json)")
+    common.add_overwrite_arg(p)
     p.add_argument("--max-queries", type=int, default=None,
                    help="localize at most N queries (evenly spaced; default all)")
     d = sift.SiftReferenceConfig()
@@ -142,6 +143,7 @@ def accuracy_table(rows: list[dict]) -> str:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "sift_reference")])
     doc = common.base_doc("sift_reference", args, argv)
     scene = load_scene_from_args(args)
     name = args.name or Path(args.root).resolve().name

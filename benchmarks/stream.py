@@ -32,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cache budget in MB (default %(default)s)")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/stream.json)")
+    common.add_overwrite_arg(p)
     return p
 
 
@@ -52,6 +53,7 @@ def success_rate(res) -> float:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "stream")])
     doc = common.base_doc("stream", args, argv)
     ctxs, skipped = common.prepare_scenes(args)
     rows = []

@@ -73,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/track.json)")
     p.add_argument("--plot", default=None, metavar="FILE.png",
                    help="draw the per-frame error and latency of the runs")
+    common.add_overwrite_arg(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -258,6 +259,7 @@ def plot(runs: dict[str, dict], scale: float, path: str, jump: tuple[int, int] |
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    common.check_outputs(args, [common.json_path(args, "track"), args.plot])
     modes = [s.strip() for s in args.modes.split(",") if s.strip()]
     if not modes or any(s not in RUNS for s in modes):
         raise VrsError(f"--modes must list some of {', '.join(RUNS)}, got {args.modes!r}")

@@ -164,7 +164,8 @@ def test_colmap_errors(tmp_path):
     raises(tmp_path / "elsewhere", "colmap", root, problem="images folder not found",
            images=tmp_path / "elsewhere")
     (root / "cameras.txt").write_text("1 PINHOLE 8 6 5 x 4 3\n")
-    raises(root, "colmap", root, problem="cannot read COLMAP model")
+    raises(root / "cameras.txt", "colmap", root, line=1,
+           problem="malformed camera line: expected numbers")
     raises(tmp_path / "images", "colmap", tmp_path / "images", problem="no COLMAP model")
 
 

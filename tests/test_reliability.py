@@ -73,6 +73,30 @@ def run_cli(module: str, args: list[str], fsize: int | None = None, timeout: flo
                           capture_output=True, timeout=timeout)
 
 
+def interrupt_program(code: str, first_line: str, wait: float = 0.5,
+                      path: Path | None = None) -> tuple[int, str, str]:
+    """Run ``python -c CODE``, send SIGINT ``wait`` s after it prints ``first_line``:
+    (exit status, rest of stdout, stderr)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, [REPO, path] if path else
+                                                          [REPO]))}
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == first_line + "\n"
+        time.sleep(wait)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill()
+    return p.returncode, out, err
+
+
+def assert_interrupted(rc: int, err: str) -> None:
+    """Status 130 and one 'interrupted' line, no traceback."""
+    assert rc == 130, err
+    assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
+
+
 def unwritable(tmp_path: Path, kind: str) -> Path:
     """An output path that cannot be created, even by root."""
     if kind == "parent_is_file":
@@ -934,7 +958,8 @@ def test_set_values_in_range_still_pass():
 
 
 @pytest.mark.parametrize("edit", ["nerf batch_size 0", "null names", "null k_max",
-                                  "null files", "files sha256 int"])
+                                  "null files", "files sha256 int", "stats str",
+                                  "stats ilm steps str"])
 def test_hand_edited_map_json_values_are_one_line(edit, tiny_map, tmp_path):
     from vrs_jax import maps
 
@@ -945,6 +970,10 @@ def test_hand_edited_map_json_values_are_one_line(edit, tiny_map, tmp_path):
         meta["config"]["nerf"]["batch_size"] = 0
     elif edit == "files sha256 int":
         meta["files"]["egm.npz"]["sha256"] = 5
+    elif edit == "stats str":  # was an AttributeError traceback
+        meta["stats"] = "x"
+    elif edit == "stats ilm steps str":  # was a TypeError traceback
+        meta["stats"]["ilm"]["steps"] = "800"
     else:
         meta[edit.split()[1]] = None
     (d / "map.json").write_text(json.dumps(meta))
@@ -1147,3 +1176,330 @@ def test_write_checks_of_two_processes_do_not_collide(tmp_path, monkeypatch):
     fileio.check_writable(tmp_path / "ckpt")
     assert seen == [f".vrs_jax_write_test.{os.getpid()}"]
     assert list((tmp_path / "ckpt").iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- benchmarks' outputs
+
+
+def test_benchmark_outputs_are_never_replaced_silently(tiny_map, tmp_path, capsys):
+    """Before: every ``python -m benchmarks.NAME --json F`` (and ``--plot``, ``--figure``,
+    the figures of ``benchmarks.figures --out``) replaced an existing F without a word, and
+    ``--plot``/``--figure`` into a map folder replaced the map's files. Now an existing file
+    is refused before any work unless --overwrite; a map's file never, even with it."""
+    from benchmarks import (
+        ablation,
+        clusters,
+        confidence,
+        fidelity,
+        figures,
+        localize,
+        map_size,
+        nerf,
+        render,
+        shard,
+        sift_reference,
+        stream,
+        track,
+    )
+
+    old = tmp_path / "old.json"
+    old.write_text("earlier results\n")
+    png = tmp_path / "old.png"
+    png.write_bytes(b"earlier figure")
+    figs = tmp_path / "figs"
+    figs.mkdir()
+    (figs / "timing.png").write_bytes(b"earlier figure")
+    m = tmp_path / "map"
+    shutil.copytree(tiny_map, m)
+    before = snapshot(tmp_path)
+    js = ["--json", str(old)]
+    ds = ["--format", "7scenes", "--root", str(tmp_path / "nowhere")]
+    new = str(tmp_path / "new.json")
+    cases = [
+        (ablation.main, js, old), (localize.main, js, old), (render.main, js, old),
+        (shard.main, js, old), (stream.main, js, old), (map_size.main, js, old),
+        (clusters.main, js, old), (confidence.main, js, old),
+        (sift_reference.main, [*ds, *js], old),
+        (fidelity.main, ["--map", str(m), *js], old),
+        (nerf.main, ["--data", "d", "--format", "nerf", "--minutes", "1", *js], old),
+        (track.main, ["--map", str(m), *js], old),
+        (track.main, ["--map", str(m), "--json", new, "--plot", str(png)], png),
+        (track.main, ["--map", str(m), "--json", new, "--plot", str(m / "map.json"),
+                      "--overwrite"], m / "map.json"),
+        (map_size.main, ["--json", new, "--plot", str(png)], png),
+        (map_size.main, ["--json", new, "--plot", str(m / "egm.npz"), "--overwrite"],
+         m / "egm.npz"),
+        (clusters.main, ["--json", new, "--figure", str(png)], png),
+        (clusters.main, ["--json", new, "--figure", str(m / "ilm.npz"), "--overwrite"],
+         m / "ilm.npz"),
+        (figures.main, ["--out", str(figs), "--figures", "timing"], figs / "timing.png"),
+        (figures.main, ["--out", str(m), "--figures", "timing", "--localize-json", str(old),
+                        "--overwrite"], m),
+        (confidence.main, ["--from-json", str(old), "--json", str(old), "--overwrite"], old),
+        # not outputs, but tracebacks before (FileNotFoundError, JSONDecodeError)
+        (confidence.main, ["--from-json", str(tmp_path / "nope.json")], "not found"),
+        (confidence.main, ["--from-json", str(png)], "corrupt"),
+    ]
+    for main, args, named in cases:
+        line = assert_one_error_line(main(args), capsys.readouterr().err, named)
+        assert any(w in line for w in ("already exists", "map", "input", "found", "corrupt"))
+    assert snapshot(tmp_path) == before
+    assert not tmp_files(tmp_path)
+
+
+def test_blank_query_failure_names_its_missing_keypoints(tiny_map, small_synthetic_scene,
+                                                         tmp_path, capsys):
+    """Before: a blank (featureless) query's summary.json said "PnP failed (too few matches or
+    inliers)"; the Localizer's result said nothing. Now the reason names 0 keypoints, in the
+    run's summary and from ``Localizer.failure_reason``; a good query still has none."""
+    from vrs_jax.cli import localize as cli
+    from vrs_jax.data.readers import load_scene
+    from vrs_jax.localize import Localizer
+
+    root = tmp_path / "room"
+    shutil.copytree(small_synthetic_scene, root)
+    q = load_scene("7scenes", root).queries()
+    w, h = (int(s) for s in q.sizes[2])
+    fileio.write_image(q.image_paths[2], np.full((h, w, 3), 128, np.uint8))
+    out = tmp_path / "loc"
+    rc = cli.main(["--map", str(tiny_map), "--config", "test", "--mode", "real", "--no-timing",
+                   "--quiet", "--format", "7scenes", "--root", str(root), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    rows = {r["name"]: r for r in json.loads((out / "summary.json").read_text())["per_query"]}
+    assert not rows[q.names[2]]["success"]
+    assert rows[q.names[2]]["error"].startswith("no keypoints in the query image"), rows
+    assert rows[q.names[0]]["error"] is None
+    loc = Localizer(tiny_map, "test", source="real")
+    blank = loc.localize_image(np.full((h, w), 0.5, np.float32), q.K[2])
+    assert int(blank.n_keypoints) == 0
+    assert loc.failure_reason(blank).startswith("no keypoints in the query image")
+    good = loc.localize_image(q.image_paths[0], q.K[0])
+    assert bool(good.success) and loc.failure_reason(good) is None
+
+
+def test_ctrl_c_while_the_interpreter_exits_is_one_line():
+    """Ctrl-C after a command finished, while the interpreter runs its exit handlers (jax
+    clears its caches at exit), printed a traceback from the exit handler (exit status 0 or
+    killed by SIGINT). Now: one 'interrupted' line and status 130. The exit handler is a
+    sleep here, so the signal lands in it whatever the machine's speed."""
+    code = ("import atexit, time\n"
+            "from vrs_jax.errors import cli_main\n"
+            "atexit.register(time.sleep, 30)\n"
+            "main = cli_main(lambda: print('done', flush=True))\n"
+            "raise SystemExit(main())\n")
+    assert_interrupted(*interrupt_program(code, "done")[::2])
+
+
+# ----------------------------------------------------------------------------- COLMAP models
+
+
+def _colmap_model(tiny_map, d: Path, text: bool) -> Path:
+    from vrs_jax import maps
+    from vrs_jax.egm.colmap import export_colmap
+
+    return export_colmap(maps.load_map(tiny_map, require_ilm=False).egm, d, text=text)
+
+
+def _edit_line(path: Path, k: int, fn) -> None:
+    """Apply ``fn`` to the fields of the k-th data line (not a comment) of a text file."""
+    lines = path.read_text().splitlines()
+    data = [i for i, s in enumerate(lines) if s and not s.startswith("#")]
+    lines[data[k]] = " ".join(fn(lines[data[k]].split()))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_damaged_colmap_models_are_one_line(tiny_map, small_synthetic_scene, tmp_path):
+    """Before: a truncated images.bin or points3D.bin hung pycolmap (minutes, no output); a
+    truncated cameras.bin read as 'non-positive focal length'; the other damage came back as
+    COLMAP's C++ check text without the file; a zero quaternion loaded as a pose; a duplicate
+    image name was a ValueError traceback; a binary and a text model that disagree loaded the
+    binary one silently. Now each is one VrsError naming the file (and line) and the problem,
+    and damaged rigs/frames files (not needed: each image's pose is in the images file) do
+    not matter."""
+    from vrs_jax.data.readers import load_scene
+
+    good = {t: _colmap_model(tiny_map, tmp_path / f"good_{t}", t) for t in (True, False)}
+
+    def case(name, text, damage):
+        d = tmp_path / name
+        shutil.copytree(good[text], d)
+        damage(d)
+        return d
+
+    def cut(fname, frac):
+        return lambda d: (d / fname).write_bytes((d / fname).read_bytes()[:int(
+            frac * (d / fname).stat().st_size)])
+
+    def edit(fname, k, fn):
+        return lambda d: _edit_line(d / fname, k, fn)
+
+    def both(d):
+        for f in good[False].iterdir():
+            shutil.copy(f, d / f.name)
+        _edit_line(d / "images.txt", 0, lambda t: t[:5] + ["5.0"] + t[6:])
+
+    cases = [
+        *[(f"cut_{f}_{x}", False, cut(f"{f}.bin", x), f"{f}.bin", "truncated")
+          for f in ("cameras", "images", "points3D") for x in (0.0, 0.5, 0.97)],
+        ("cut_points_txt", True, cut("points3D.txt", 0.5), "points3D.txt", "malformed"),
+        ("cam_word", True, edit("cameras.txt", 0, lambda t: t[:4] + ["abc"] + t[5:]),
+         "cameras.txt:4", "expected numbers"),
+        ("cam_short", True, edit("cameras.txt", 0, lambda t: t[:-1]), "cameras.txt:4",
+         "expected 8"),
+        ("cam_size", True, edit("cameras.txt", 0, lambda t: t[:2] + ["0", "0"] + t[4:]),
+         "cameras.txt:4", "size 0x0"),
+        ("img_short", True, edit("images.txt", 0, lambda t: t[:5]), "images.txt:5",
+         "expected 10"),
+        ("img_camera", True, edit("images.txt", 0, lambda t: t[:8] + ["999"] + t[9:]),
+         "images.txt:5", "camera 999, which is not in the model"),
+        ("img_quat", True, edit("images.txt", 0, lambda t: t[:1] + ["0"] * 4 + t[5:]),
+         "images.txt:5", "zero quaternion"),
+        ("img_dup", True, edit("images.txt", 2, lambda t: t[:9] + [
+            (good[True] / "images.txt").read_text().split("\n")[4].split()[9]]),
+         "images.txt", "appears twice"),
+        ("pt_image", True, edit("points3D.txt", 0, lambda t: t[:8] + ["999", "0"] + t[10:]),
+         "points3D.txt:4", "image 999, which is not in the model"),
+        ("pt_index", True, edit("points3D.txt", 0, lambda t: t[:9] + ["99999"] + t[10:]),
+         "points3D.txt:4", "2D point 99999"),
+        ("pt_nan", True, edit("points3D.txt", 0, lambda t: t[:1] + ["nan"] + t[2:]),
+         "points3D.txt:4", "non-finite"),
+        ("both", True, both, "", "disagree"),
+    ]
+    for name, text, damage, names, problem in cases:
+        d = case(name, text, damage)
+        with pytest.raises(VrsError) as e:
+            load_scene("colmap", d, images=small_synthetic_scene)
+        msg = str(e.value)
+        assert "\n" not in msg and str(d / names if names else d) in msg, (name, msg)
+        assert problem in msg, (name, msg)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(VrsError, match="no COLMAP model here"):
+        load_scene("colmap", empty, images=small_synthetic_scene)
+    for name, part in (("rigs", "rigs.bin"), ("frames", "frames.bin")):
+        d = case(name, False, cut(part, 0.97))
+        s = load_scene("colmap", d, images=small_synthetic_scene)
+        ref = load_scene("colmap", good[False], images=small_synthetic_scene)
+        assert s.names == ref.names and np.array_equal(s.R, ref.R)
+
+
+def test_colmap_export_never_leaves_two_models(tiny_map, small_synthetic_scene, tmp_path,
+                                               capsys):
+    """Before: ``build_egm --export-colmap DIR`` (text) into a folder holding a binary model
+    wrote the text model beside it; COLMAP (and the reader) then read the stale binary one.
+    Now a model of either format is refused; with --overwrite the other format is removed,
+    and the exported model reads back."""
+    from vrs_jax.cli import build_egm
+    from vrs_jax.data.readers import load_scene
+
+    d = _colmap_model(tiny_map, tmp_path / "cm", text=False)
+    args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--config", "test",
+            "--out", str(tmp_path / "egm"), "--export-colmap", str(d), "--quiet"]
+    assert_one_error_line(build_egm.main(args), capsys.readouterr().err, d / "cameras")
+    assert not (d / "cameras.txt").exists()
+    assert build_egm.main([*args, "--overwrite"]) == 0
+    assert sorted(p.suffix for p in d.iterdir()) == [".txt"] * 5
+    s = load_scene("colmap", d, images=small_synthetic_scene)
+    assert len(s.names) == 24
+
+
+@pytest.mark.parametrize("edit,problem", [
+    (("format", "bogus"), "unknown dataset format 'bogus'"),
+    (("options", [["query_every", "x"]]), "query_every must be an integer, got 'x'")])
+def test_hand_edited_map_source_is_one_line_naming_map_json(edit, problem, tiny_map, tmp_path,
+                                                            capsys):
+    """``localize`` with the map's own queries reads the dataset the map records: an edited
+    reader option there was a ValueError traceback, an edited format blamed no file."""
+    from vrs_jax.cli import localize as cli
+
+    d = tmp_path / "map"
+    shutil.copytree(tiny_map, d, ignore=shutil.ignore_patterns("nerf"))
+    meta = json.loads((d / "map.json").read_text())
+    meta["source"][edit[0]] = edit[1]
+    (d / "map.json").write_text(json.dumps(meta))
+    rc = cli.main(["--map", str(d), "--config", "test", "--mode", "real", "--quiet",
+                   "--out", str(tmp_path / "run")])
+    line = assert_one_error_line(rc, capsys.readouterr().err, d / "map.json")
+    assert problem in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_sfm_of_a_single_photo_is_refused_before_colmap(tmp_path, capfd):
+    """``train --format images`` on a folder of one photo ran COLMAP's SfM, which printed its
+    own warning and error lines before ours; now one line before any SfM."""
+    from vrs_jax.cli import train
+
+    root = tmp_path / "photos"
+    root.mkdir()
+    fileio.write_image(root / "a.png", np.full((60, 80, 3), 128, np.uint8))
+    rc = train.main(["--format", "images", "--root", str(root), "--out", str(tmp_path / "m"),
+                     "--config", "test", "--steps", "2", "--quiet"])
+    err = capfd.readouterr().err
+    line = assert_one_error_line(rc, err, root)
+    assert "at least 2 photos" in line and len(err.strip().splitlines()) == 1, err
+
+
+def test_ctrl_c_inside_a_gc_callback_still_stops_the_program():
+    """Ctrl-C landing in a garbage-collector callback (jax registers one; it runs often) was
+    printed by Python as an "ignored" exception, and the command went on working. Now the
+    program stops: one 'interrupted' line, status 130."""
+    code = ("import gc, time\n"
+            "from vrs_jax.errors import cli_main\n"
+            "def slow(phase, info):\n"
+            "    if phase == 'start':\n"
+            "        print('in gc', flush=True)\n"
+            "        time.sleep(2)\n"
+            "def work():\n"
+            "    gc.callbacks.append(slow)\n"
+            "    gc.collect()\n"
+            "    gc.callbacks.remove(slow)\n"
+            "    time.sleep(20)\n"
+            "    print('went on working', flush=True)\n"
+            "raise SystemExit(cli_main(work)())\n")
+    rc, out, err = interrupt_program(code, "in gc")
+    assert "went on working" not in out, out
+    assert_interrupted(rc, err)
+
+
+def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
+    """Ctrl-C in the seconds ``python -m experiments.NAME`` spends importing jax printed a
+    traceback through the imports (killed by SIGINT). The wrappers import their command with
+    ``errors.program_main``: one line, status 130. The imported module sleeps here."""
+    (tmp_path / "slow_cli.py").write_text("import time\nprint('importing', flush=True)\n"
+                                          "time.sleep(30)\ndef main():\n    return 0\n")
+    code = ("from vrs_jax.errors import program_main\n"
+            "main = program_main('slow_cli', '__main__')\n"
+            "raise SystemExit(main())\n")
+    assert_interrupted(*interrupt_program(code, "importing", 0.3, tmp_path)[::2])
+    from experiments import localize as wrapper
+    from vrs_jax.cli import localize
+
+    assert wrapper.main is localize.main
+
+
+def test_colmap_export_on_a_full_disk_keeps_the_old_model(tiny_map, tmp_path):
+    """pycolmap does not report a failed write: on a full disk the export left truncated
+    model files and said it had written the model (exit 0). Now it is written aside, read
+    back whole before it replaces anything, else one line; an earlier model stays."""
+    d = _colmap_model(tiny_map, tmp_path / "cm", text=True)
+    before = snapshot(d)
+    code = ("import resource, signal\n"
+            "from vrs_jax import maps\n"
+            "from vrs_jax.egm.colmap import export_colmap\n"
+            "from vrs_jax.errors import VrsError\n"
+            f"egm = maps.load_map({str(tiny_map)!r}, require_ilm=False).egm\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (20000, resource.RLIM_INFINITY))\n"
+            "for text in (True, False):\n"
+            "    try:\n"
+            f"        export_colmap(egm, {str(d)!r}, text=text, overwrite=True)\n"
+            "        print('written')\n"
+            "    except VrsError as e:\n"
+            "        print('error:', e)\n")
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
+                       capture_output=True, timeout=240)
+    lines = r.stdout.strip().splitlines()
+    assert len(lines) == 2 and all(ln.startswith(f"error: {d}: cannot write the COLMAP model")
+                                   for ln in lines), r.stdout + r.stderr
+    assert snapshot(d) == before

@@ -53,6 +53,8 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
     @functools.wraps(fn)
     def wrapper(*args, **kwargs) -> int:
         program = not args and not kwargs  # the program itself (main() reads sys.argv)
+        if program and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, _interrupt)
         try:
             try:
                 with sigterm_stops():
@@ -64,7 +66,7 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
                 raise stop from None
         except VrsError as e:
             print(f"error: {e}", file=sys.stderr)
-            return 2
+            return _finished(2, program)
         except Terminated:
             print("terminated (SIGTERM); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
@@ -73,9 +75,52 @@ def cli_main(fn: Callable[..., int | None]) -> Callable[..., int]:
             print("interrupted (Ctrl-C); what was saved is kept: re-run the same command to "
                   "continue", file=sys.stderr)
             return _stopped(130, program)
-        return 0 if rc is None else int(rc)
+        return _finished(0 if rc is None else int(rc), program)
 
     return wrapper
+
+
+def _interrupt(signum, frame) -> None:
+    """SIGINT handler of a program: KeyboardInterrupt, as Python's own, except inside a
+    garbage-collector callback (jax has one), where Python would print the exception as
+    "ignored" and go on working: the signal is then sent again a moment later."""
+    import gc
+
+    if frame is not None and any(frame.f_code is getattr(cb, "__code__", None)
+                                 for cb in gc.callbacks):
+        threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+        return
+    raise KeyboardInterrupt
+
+
+def _finished(code: int, program: bool) -> int:
+    """Exit status ``code`` of a program that ran to its end: a Ctrl-C during the
+    interpreter's teardown that follows (jax clears its caches at exit, which takes a
+    moment) stops it with one line and status 130, not a traceback from an exit handler."""
+    if program and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _interrupted_at_exit)
+    return code
+
+
+def _interrupted_at_exit(signum, frame) -> None:
+    print("interrupted (Ctrl-C) while exiting; the command had finished", file=sys.stderr)
+    _stopped(130, True)
+
+
+def program_main(module: str, caller: str) -> Callable[..., int]:
+    """The ``main`` of CLI module ``module``, imported for a ``python -m`` wrapper whose
+    ``__name__`` is ``caller``: when that wrapper is the program, a Ctrl-C while the module
+    and its libraries are imported (jax takes seconds) stops with one line and status 130,
+    not a traceback through the imports."""
+    import importlib
+
+    if caller != "__main__":
+        return importlib.import_module(module).main
+    try:
+        return importlib.import_module(module).main
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C) while starting; nothing was done", file=sys.stderr)
+        return _stopped(130, True)
 
 
 def _stop_in(e: BaseException) -> KeyboardInterrupt | None:

@@ -45,6 +45,7 @@ from vrs_jax.cli.common import (
     record_run,
     start_run,
 )
+from vrs_jax.data.readers import FORMATS
 from vrs_jax.data.readers.query_list import query_scene as query_list_scene
 from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
@@ -134,10 +135,14 @@ def query_scene(m: maps.Map, args, sfm_dir: Path):
         sfm_dir = Path(args.map) / "sfm"  # photos: the map's own SfM poses (same frame)
         if not src.format or not src.root:
             raise VrsError("the map records no dataset; pass --format and --root", args.map)
+        meta = Path(args.map) / "map.json"
+        if src.format not in (*FORMATS, "images"):
+            raise VrsError(f"source: unknown dataset format {src.format!r} (an edited "
+                           "map.json?)", meta)
         args.fmt, args.root = src.format, src.root
         opts = dict(src.options)
-        args.query_every = int(opts["query_every"]) if "query_every" in opts else None
-        args.downscale = int(opts["downscale"]) if "downscale" in opts else None
+        args.query_every = _source_count(opts, "query_every", meta)
+        args.downscale = _source_count(opts, "downscale", meta)
         args.opt = [f"{k}={v}" for k, v in opts.items() if k not in ("query_every",
                                                                    "downscale")]
     elif args.root is None or args.fmt is None:
@@ -149,6 +154,17 @@ def query_scene(m: maps.Map, args, sfm_dir: Path):
                        "--query-every N)", scene.root)
     refuse_map_images(m, queries)
     return queries
+
+
+def _source_count(opts: dict, key: str, meta: Path) -> int | None:
+    """The integer reader option ``key`` a map's source records (None when absent)."""
+    if key not in opts:
+        return None
+    try:
+        return int(opts[key])
+    except (TypeError, ValueError):
+        raise VrsError(f"source option {key} must be an integer, got {opts[key]!r} (an "
+                       "edited map.json?)", meta) from None
 
 
 def refuse_map_images(m: maps.Map, queries) -> None:
@@ -221,7 +237,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                   basename=args.basename)
     summary = summarize(queries, results, info, m, cfg, Path(args.map))
     conf, verdict = result_verdicts(m, results, cfg.confidence)
-    summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v))
+    summary["per_query"] = [per_query(n, r, info["errors"].get(n), float(c), str(v),
+                                      cfg.pnp.min_inliers)
                             for n, r, c, v in zip(queries.names, results, conf, verdict,
                                                   strict=True)]
     if tracks is not None:
@@ -289,12 +306,13 @@ def tracking_counts(tracks) -> dict:
 
 
 def per_query(name: str, r, error: str | None, confidence: float = 0.0,
-              verdict: str = "failed") -> dict:
+              verdict: str = "failed", min_inliers: int = 1) -> dict:
     """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
     inliers' geometry (coverage of the query image, median ray angle with the map views,
     relative depth spread; None without inliers), the pose ``confidence`` in [0, 1] and its
     ``verdict`` (localized / uncertain / failed; localize.confidence) and why it has no PnP
-    pose (``error``: None when localized)."""
+    pose (``error``: None when localized; localize.failure_reason with the PnP config's
+    ``min_inliers``)."""
     if r is None:
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
                 "inlier_coverage": None, "inlier_ray_angle_deg": None,
@@ -307,8 +325,7 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
             "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
             "confidence": round(confidence, 4), "verdict": verdict,
-            "error": None if ok else "PnP failed (too few matches or inliers): the top-1 "
-                                     "reference pose is written"}
+            "error": localize.failure_reason(r, min_inliers)}
 
 
 @cli_main

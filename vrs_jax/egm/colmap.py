@@ -8,14 +8,17 @@ as 2D points and the 3D points with their tracks.
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from vrs_jax import fileio
-from vrs_jax.data.readers.colmap import colmap_camera
+from vrs_jax.data.readers.colmap import MODEL_PARTS, check_model, colmap_camera
 from vrs_jax.egm.map import EGM
+from vrs_jax.errors import VrsError
 
 
 def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
@@ -62,13 +65,36 @@ def to_colmap(egm: EGM) -> pycolmap.Reconstruction:
 def export_colmap(egm: EGM, out_dir: str | Path, text: bool = True,
                   overwrite: bool = False) -> Path:
     """Write the map as a COLMAP model (cameras, images, points3D; .txt or .bin); a model
-    already there is refused unless ``overwrite``."""
+    already there, binary or text, is refused unless ``overwrite``, which also removes the
+    other format's files (COLMAP reads a .bin model before a .txt one: a stale one left
+    beside would be read instead)."""
     d = fileio.check_writable(out_dir)
-    for name in ("cameras", "images", "points3D"):
-        fileio.check_new(d / f"{name}.{'txt' if text else 'bin'}", overwrite)
+    ext, other = ("txt", "bin") if text else ("bin", "txt")
+    for name in (*MODEL_PARTS, "rigs", "frames"):
+        for e in (ext, other):
+            fileio.check_new(d / f"{name}.{e}", overwrite)
     rec = to_colmap(egm)
-    if text:
-        rec.write_text(d)  # fileio-exempt: pycolmap writes its own files
-    else:
-        rec.write_binary(d)
+    with tempfile.TemporaryDirectory(dir=d, prefix=".export.tmp-") as tmp:  # fileio-exempt
+        if text:
+            rec.write_text(tmp)  # fileio-exempt: pycolmap writes its own files
+        else:
+            rec.write_binary(tmp)
+        _check_written(rec, Path(tmp), d)
+        for f in sorted(Path(tmp).iterdir()):
+            os.replace(f, d / f.name)  # fileio-exempt: files checked whole, moved in
+    for name in (*MODEL_PARTS, "rigs", "frames"):  # only the new model is left
+        (d / f"{name}.{other}").unlink(missing_ok=True)
     return d
+
+
+def _check_written(rec: pycolmap.Reconstruction, tmp: Path, d: Path) -> None:
+    """VrsError naming ``d`` unless the model written to ``tmp`` reads back whole: pycolmap
+    does not report a failed write (a full disk leaves truncated files)."""
+    try:
+        ix = check_model(tmp)
+    except VrsError as e:
+        raise VrsError(f"cannot write the COLMAP model (disk full?): {e.problem}", d) from None
+    want = (rec.num_cameras(), rec.num_images(), rec.num_points3D())
+    if (len(ix.cameras), len(ix.images), len(ix.point_id)) != want:
+        raise VrsError("cannot write the COLMAP model (disk full?): it reads back with fewer "
+                       "records", d)

@@ -87,13 +87,16 @@ def run_sfm(image_dir: str | Path, work_dir: str | Path, image_names: list[str] 
     Returns:
       The reconstruction with the most registered images.
     Raises:
-      VrsError if the folder has no images or SfM registers no image pair at all.
+      VrsError if the folder has fewer than 2 images or SfM registers no image pair at all.
     """
     image_dir = require_dir(image_dir, "image folder")
     names = list_images(image_dir) if image_names is None else list(image_names)
     for n in names:
         if not (image_dir / n).is_file():
             raise VrsError("image not found", image_dir / n)
+    if len(names) < 2:
+        raise VrsError(f"SfM needs at least 2 photos of the scene, found {len(names)}",
+                       image_dir)
     if cfg.camera_model not in _SUPPORTED_MODELS:
         raise VrsError(f"SfmConfig.camera_model must be one of {_SUPPORTED_MODELS}, "
                        f"got {cfg.camera_model!r}")

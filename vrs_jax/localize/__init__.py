@@ -9,6 +9,7 @@ matching, PnP), and ``localize(map, query, cfg)``.
 
     loc = localize.Localizer("maps/lego", "cpu-small")   # load once, compile once
     result = loc.localize_image("query.png", K, dist)
+    loc.failure_reason(result)       # why it has no PnP pose (e.g. a blank image), or None
     frames = loc.track(paths, K, dist)                    # a video stream: tracking
 """
 
@@ -16,9 +17,9 @@ from vrs_jax.localize.config import CONFIGS, LocalizeConfig, TrackConfig, get_co
 from vrs_jax.localize.localizer import Localizer
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.run import localize, localize_stacked, localize_timed, run_stages
-from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
+from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult, failure_reason
 
 __all__ = ["CONFIGS", "STAGE_NAMES", "LocalizeConfig", "LocalizeResult", "Localizer", "Query",
-           "TrackConfig",
+           "TrackConfig", "failure_reason",
            "get_config", "localize", "localize_stacked", "localize_timed", "prepare_query",
            "run_stages", "stack_queries"]

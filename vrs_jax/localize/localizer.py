@@ -35,7 +35,7 @@ from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
-from vrs_jax.localize.stages import LocalizeResult
+from vrs_jax.localize.stages import LocalizeResult, failure_reason
 from vrs_jax.maps import Map, load_map
 
 
@@ -110,12 +110,18 @@ class Localizer:
           K: [3, 3] intrinsics of that image size (COLMAP pixel convention).
           dist: [5] OpenCV distortion (k1, k2, p1, p2, k3) or None.
         Returns:
-          LocalizeResult with numpy values (world-to-camera R [3, 3], t [3], flags, counts).
+          LocalizeResult with numpy values (world-to-camera R [3, 3], t [3], flags, counts);
+          :meth:`failure_reason` says why it has no PnP pose.
         Raises:
           VrsError naming the path for an unreadable image, or the image when its size
           contradicts K.
         """
         return self.localize_query(self.prepare(image, K, dist))
+
+    def failure_reason(self, r: LocalizeResult) -> str | None:
+        """Why result ``r`` has no PnP pose (a blank query image: no keypoints; no match; too
+        few inliers), or None when it has one."""
+        return failure_reason(r, self.cfg.pnp.min_inliers)
 
     def localize_query(self, q: Query) -> LocalizeResult:
         """Localize a prepared query in full (retrieval, first pass, guided passes; the

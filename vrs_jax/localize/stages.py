@@ -60,6 +60,8 @@ class LocalizeResult:
       pose).
     n_rendered, n_rendered_first: [] int32 keypoint patches rendered in all passes and in the
     first (0 in real-patch mode; each patch is P^2 rays).
+    n_keypoints: [] int32 keypoints of the query image (0: a blank or featureless image;
+      :func:`failure_reason` says why a result has no PnP pose).
 
     Geometry of the final inliers (:func:`inlier_geometry`; NaN without inliers), for a user
     to judge a pose that ``success`` alone does not: a pose resting on inliers in one corner
@@ -91,6 +93,25 @@ class LocalizeResult:
     inlier_coverage: Array
     inlier_ray_angle_deg: Array
     inlier_depth_spread: Array
+    n_keypoints: Array
+
+
+def failure_reason(r: LocalizeResult, min_inliers: int) -> str | None:
+    """Why result ``r`` has no PnP pose (None when it has one), from its counts: no or too
+    few query keypoints (a blank or featureless image), no match with the map, or too few
+    inliers. ``min_inliers``: the PnP config's (``cfg.pnp.min_inliers``)."""
+    if bool(r.success):
+        return None
+    n_kp, n_m, n_in = int(r.n_keypoints), int(r.n_matches), int(r.n_inliers)
+    tail = ": the top-1 reference pose is written"
+    if n_kp == 0:
+        return "no keypoints in the query image (blank or featureless)" + tail
+    if n_kp < min_inliers:
+        return (f"{n_kp} keypoints in the query image, fewer than PnP needs inliers "
+                f"({min_inliers})" + tail)
+    if n_m == 0:
+        return f"no match between the query's {n_kp} keypoints and the map" + tail
+    return (f"PnP failed: {n_m} matches, {n_in} inliers (PnP needs {min_inliers})" + tail)
 
 
 def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array, X: Array,
@@ -272,7 +293,8 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          n_rendered=s.get("n_rendered", jnp.int32(0)),
                          n_rendered_first=s.get("n_rendered", jnp.int32(0)),
                          inlier_coverage=cov, inlier_ray_angle_deg=ang,
-                         inlier_depth_spread=spread)
+                         inlier_depth_spread=spread,
+                         n_keypoints=jnp.sum(q.mask).astype(jnp.int32))
     return {"result": res, "inliers": pose.inliers}
 
 

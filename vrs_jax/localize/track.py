@@ -169,7 +169,7 @@ def start_result(q: Query, idx: Array, R: Array, t: Array) -> LocalizeResult:
                           n_inliers=i32, n_matches=i32, retrieved=idx, R_first=R, t_first=t,
                           n_inliers_first=i32, n_inliers_guided=jnp.int32(-1), n_rendered=i32,
                           n_rendered_first=i32, inlier_coverage=nan, inlier_ray_angle_deg=nan,
-                          inlier_depth_spread=nan)
+                          inlier_depth_spread=nan, n_keypoints=jnp.sum(q.mask).astype(jnp.int32))
 
 
 def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
@@ -279,6 +279,7 @@ class TrackResult:
     inlier_coverage: float
     inlier_ray_angle_deg: float
     inlier_depth_spread: float
+    n_keypoints: int
     tracked: bool = False
     attempted: bool = False
     rejected: str | None = None
@@ -312,7 +313,8 @@ def as_track_result(name: str, r: LocalizeResult, **extra) -> TrackResult:
     return TrackResult(name=name, **vals, **extra)
 
 
-def flagged(name: str, error: str, k: int, latency_s: float) -> TrackResult:
+def flagged(name: str, error: str, k: int, latency_s: float, n_keypoints: int = 0
+            ) -> TrackResult:
     """A frame with no result (unreadable, or blank): success False, verdict failed."""
     nan = float("nan")
     return TrackResult(name=name, R=np.eye(3), t=np.zeros(3), success=False, fallback=False,
@@ -320,7 +322,7 @@ def flagged(name: str, error: str, k: int, latency_s: float) -> TrackResult:
                        R_first=np.eye(3), t_first=np.zeros(3), n_inliers_first=0,
                        n_inliers_guided=-1, n_rendered=0, n_rendered_first=0,
                        inlier_coverage=nan, inlier_ray_angle_deg=nan, inlier_depth_spread=nan,
-                       latency_s=latency_s, error=error)
+                       n_keypoints=n_keypoints, latency_s=latency_s, error=error)
 
 
 def stream_inputs(frames: Sequence[Any], K: Any, dist: Any = None
@@ -408,7 +410,7 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         if n_kp < cfg.pnp.min_inliers:
             out.append(flagged(name, f"{name}: {n_kp} keypoints, fewer than PnP needs inliers "
                                f"({cfg.pnp.min_inliers}): a blank or featureless frame", k,
-                               time.perf_counter() - t0))
+                               time.perf_counter() - t0, n_kp))
             continue
         pred = predict_pose(history, i, tc.max_gap)
         extra: dict[str, Any] = {"attempted": pred is not None}

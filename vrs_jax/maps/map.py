@@ -217,6 +217,13 @@ def read_meta(folder: str | Path) -> dict[str, Any]:
             and isinstance(r.get("bytes"), int) for r in files.values()):
         raise VrsError("map metadata 'files' must map each file name to its sha256 and bytes",
                        p)
+    stats = meta.get("stats", {})
+    if not isinstance(stats, dict) or not all(isinstance(stats.get(k, {}), dict)
+                                              for k in ("egm", "ilm")):
+        raise VrsError("map metadata 'stats' must be a mapping (its 'egm' and 'ilm' too)", p)
+    steps = stats.get("ilm", {}).get("steps")
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int)):
+        raise VrsError(f"map metadata 'stats.ilm.steps' must be an integer, got {steps!r}", p)
     return meta
 
 
