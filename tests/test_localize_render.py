@@ -12,6 +12,7 @@ import pytest
 from vrs_jax import localize, maps
 from vrs_jax.errors import VrsError
 from vrs_jax.localize.render import (
+    first_pass_keypoints,
     interpolation_matrix,
     nerf_evals_per_ray,
     rays_per_patch,
@@ -112,3 +113,31 @@ def test_probe_evaluations_and_grids_are_checked(tiny):
                          dataclasses.replace(cfg, probe_grid=3, narrow_fine=0))
     with pytest.raises(VrsError):
         localize.get_config("test", probe_grid=1)
+
+
+def test_first_pass_budget_keeps_the_longest_tracks_and_renders_them_alike(tiny):
+    """first_pass_keypoints keeps B keypoints per image, those whose 3D points are seen in
+    the most reference images (numpy count); their patches are the ones every keypoint's
+    render gives, and no other row is rendered."""
+    egm = tiny.egm
+    pid, mask = np.asarray(egm.point_idx), np.asarray(egm.kp_mask)
+    track = np.bincount(pid[mask & (pid >= 0)], minlength=np.asarray(egm.points3d).shape[0])
+    budget = 20
+    cfg = localize.get_config("test", first_pass_keypoints=budget)
+    idx = jnp.arange(mask.shape[0])
+    keep = np.asarray(first_pass_keypoints(tiny, idx, cfg))
+    for i in range(mask.shape[0]):
+        valid = mask[i] & (pid[i] >= 0)
+        assert keep[i].sum() == min(budget, mask[i].sum())
+        assert not (keep[i] & ~mask[i]).any()
+        if valid.sum() > budget:
+            kept, dropped = track[pid[i][keep[i]]], track[pid[i][valid & ~keep[i]]]
+            assert kept.min() >= dropped.max()
+    np.testing.assert_array_equal(
+        np.asarray(first_pass_keypoints(tiny, idx, localize.get_config("test"))), mask)
+    i = int(np.argmax(mask.sum(1)))
+    patches = tiny.config.features.patches
+    full = np.asarray(render_reference(tiny, jnp.int32(i), patches, localize.get_config("test")))
+    part = np.asarray(render_reference(tiny, jnp.int32(i), patches, cfg))
+    np.testing.assert_allclose(part[keep[i]], full[keep[i]], atol=1e-5)
+    assert np.all(part[~keep[i]] == 0)

@@ -135,6 +135,9 @@ class LocalizeConfig:
     # patch then costs probe_grid^2 x narrow_samples + rays x narrow_fine evaluations
     # instead of rays x (narrow_samples + narrow_fine). 0: off (every ray its own passes).
     probe_grid: int = 0
+    # Render mode: keypoints per retrieved image that the first pass renders and matches,
+    # those of the longest tracks first (render.first_pass_keypoints); 0: every one.
+    first_pass_keypoints: int = 0
     # Guided passes (render where the query is): after a successful pose, the retrieved
     # images' map points are projected with it and each query keypoint is matched only to
     # points predicted within guided_radius pixels (mutual nearest neighbour, ratio test
@@ -201,6 +204,8 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.probe_grid must be 0 (off) or >= 2")
         if self.render_stride < 1:
             raise VrsError("LocalizeConfig.render_stride must be >= 1")
+        if self.first_pass_keypoints < 0:
+            raise VrsError("LocalizeConfig.first_pass_keypoints must be >= 0 (0: all)")
         if self.early_exit_inliers < 0:
             raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
         if self.coverage_grid < 1:

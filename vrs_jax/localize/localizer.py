@@ -34,6 +34,7 @@ from vrs_jax.localize import track as track_lib
 from vrs_jax.localize.cache import DescriptorCache
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
+from vrs_jax.localize.render import first_pass_keypoints
 from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult, failure_reason
 from vrs_jax.maps import Map, load_map
@@ -193,7 +194,7 @@ class Localizer:
         masked out)."""
         blank = np.zeros_like(next(d for d in descs if d is not None))
         desc = np.stack([blank if d is None else d for d in descs])
-        mask = self.map.egm.kp_mask[s["idx"]] & jnp.asarray(have)[:, None]
+        mask = first_pass_keypoints(self.map, s["idx"], self.cfg) & jnp.asarray(have)[:, None]
         return {"desc": jnp.asarray(desc), "desc_mask": mask}
 
     def _confident(self, q: Query, s: dict, descs: list, have: np.ndarray) -> bool:

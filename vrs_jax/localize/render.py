@@ -210,14 +210,50 @@ def interpolation_matrix(n: int, stride: int) -> np.ndarray:
     return W
 
 
+def first_pass_keypoints(m: Map, idx: Array, cfg: LocalizeConfig) -> Array:
+    """[..., K_max] bool: the keypoints of reference images ``idx`` [...] that the first
+    pass renders (render mode) and matches: every valid one, or with
+    ``cfg.first_pass_keypoints`` > 0 that many per image, those of the longest tracks first
+    (3D points seen in the most reference images: the best triangulated, the likeliest in
+    view of a query), ties in the map's keypoint order."""
+    egm = m.egm
+    mask = egm.kp_mask[idx]
+    budget = cfg.first_pass_keypoints
+    if budget <= 0 or budget >= mask.shape[-1]:
+        return mask
+    pid = egm.point_idx
+    track = jnp.zeros(egm.points3d.shape[0], jnp.int32).at[jnp.maximum(pid, 0)].add(
+        (egm.kp_mask & (pid >= 0)).astype(jnp.int32))
+    score = jnp.where(mask & (pid[idx] >= 0), track[jnp.maximum(pid[idx], 0)], -1)
+    order = jnp.argsort(-score, axis=-1, stable=True)
+    rank = jnp.argsort(order, axis=-1, stable=True)
+    return mask & (rank < budget)
+
+
+def render_rows(field: Field, kp: Array, keep: Array, depth: Array, K: Array, R: Array,
+                t: Array, dist: Array | None, near: Array, far: Array, patches: PatchConfig,
+                nerf_cfg, cfg: LocalizeConfig) -> Array:
+    """:func:`render_keypoints` of the rows ``keep`` [Kp] bool only, wherever they are:
+    they are rendered first (the renderer stops after the last kept one) and put back in
+    place; other rows are zeros. -> [Kp, P, P]."""
+    order = jnp.argsort(~keep, stable=True)
+    kp = jnp.where(keep[:, None], kp, jnp.array([0.0, 0.0, 1.0, 0.0], kp.dtype))
+    gray = render_keypoints(field, kp[order], keep[order], jnp.where(keep, depth, 1.0)[order],
+                            K, R, t, dist, near, far, patches, nerf_cfg, cfg)
+    return jnp.zeros_like(gray).at[order].set(jnp.where(keep[order, None, None], gray, 0.0))
+
+
 def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
-    """Rendered grey patches [K_max, P, P] of reference image ``i`` with its cluster's NeRF."""
+    """Rendered grey patches [K_max, P, P] of reference image ``i``'s first-pass keypoints
+    (:func:`first_pass_keypoints`; zeros elsewhere) with its cluster's NeRF."""
     egm, ilm = m.egm, m.ilm
     field = select_field(ilm.fields, ilm.image_cluster[i])
     z = rays_mod.keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
-    return render_keypoints(field, egm.keypoints[i], egm.kp_mask[i], z, egm.K[i], egm.R[i],
-                            egm.t[i], egm.dist[i], ilm.near[i], ilm.far[i], patches,
-                            ilm.config, cfg)
+    args = (egm.K[i], egm.R[i], egm.t[i], egm.dist[i], ilm.near[i], ilm.far[i], patches,
+            ilm.config, cfg)
+    if cfg.first_pass_keypoints <= 0:  # every valid keypoint: the mask is a prefix
+        return render_keypoints(field, egm.keypoints[i], egm.kp_mask[i], z, *args)
+    return render_rows(field, egm.keypoints[i], first_pass_keypoints(m, i, cfg), z, *args)
 
 
 def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: PatchConfig,
@@ -243,11 +279,8 @@ def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: Patc
     if keep is not None:
         valid = valid & keep
     kp = jnp.where(valid[:, None], kp, jnp.array([0.0, 0.0, 1.0, 0.0], kp.dtype))
-    # the valid keypoints first, so that the renderer stops after the last of them
-    order = jnp.argsort(~valid, stable=True)
-    gray = render_keypoints(field, kp[order], valid[order], jnp.where(valid, z, 1.0)[order],
-                            K, R, t, None, ilm.near[i], ilm.far[i], patches, ilm.config, cfg)
-    gray = jnp.zeros_like(gray).at[order].set(jnp.where(valid[order, None, None], gray, 0.0))
+    gray = render_rows(field, kp, valid, z, K, R, t, None, ilm.near[i], ilm.far[i], patches,
+                       ilm.config, cfg)
     return gray, kp, valid
 
 

@@ -37,7 +37,7 @@ from vrs_jax.features.matching import guided_match, match
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.pnp import PnPConfig, inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
-from vrs_jax.localize.render import render_at_pose, render_reference
+from vrs_jax.localize.render import first_pass_keypoints, render_at_pose, render_reference
 from vrs_jax.maps import Map
 
 Array = Any
@@ -186,7 +186,7 @@ def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
         gray, rendered = jax.lax.map(one, idx), jnp.ones(k, bool)
     else:
         gray, rendered = early_exit_render(m, q, cfg, idx, one)
-    n = jnp.sum(m.egm.kp_mask[idx] & rendered[:, None]).astype(jnp.int32)
+    n = jnp.sum(first_pass_keypoints(m, idx, cfg) & rendered[:, None]).astype(jnp.int32)
     return {"gray": gray, "rendered": rendered, "n_rendered": n}
 
 
@@ -225,7 +225,7 @@ def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """Descriptors [k, K_max, D] and mask [k, K_max] of the candidates' keypoints (without
     the candidates an early exit left unrendered)."""
     idx = s["idx"]
-    mask = m.egm.kp_mask[idx]
+    mask = first_pass_keypoints(m, idx, cfg) if cfg.source == "render" else m.egm.kp_mask[idx]
     if cfg.source == "real":
         desc = m.egm.local_desc[idx]
     else:
