@@ -162,6 +162,9 @@ class LocalizeConfig:
     # guided pass instead of being rendered again from the pose; the pass renders only the
     # points the first pass did not place. False: every candidate point rendered again.
     guided_reuse_inliers: bool = False
+    # Render mode: map points the guided pass renders at most (of those it would render),
+    # the longest tracks first; 0: no limit.
+    guided_keypoints: int = 0
     # Early exit over the retrieved list (render mode): the candidates are rendered best
     # first, and after each one the correspondences so far go to RANSAC; once its seed has
     # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all
@@ -204,8 +207,9 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.probe_grid must be 0 (off) or >= 2")
         if self.render_stride < 1:
             raise VrsError("LocalizeConfig.render_stride must be >= 1")
-        if self.first_pass_keypoints < 0:
-            raise VrsError("LocalizeConfig.first_pass_keypoints must be >= 0 (0: all)")
+        if self.first_pass_keypoints < 0 or self.guided_keypoints < 0:
+            raise VrsError("LocalizeConfig.first_pass_keypoints and guided_keypoints must be "
+                           ">= 0 (0: all)")
         if self.early_exit_inliers < 0:
             raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
         if self.coverage_grid < 1:

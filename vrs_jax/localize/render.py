@@ -210,24 +210,34 @@ def interpolation_matrix(n: int, stride: int) -> np.ndarray:
     return W
 
 
+def track_lengths(m: Map) -> Array:
+    """[N] int32: how many reference images' keypoints each map point links."""
+    pid, ok = m.egm.point_idx, m.egm.kp_mask & (m.egm.point_idx >= 0)
+    return jnp.zeros(m.egm.points3d.shape[0], jnp.int32).at[jnp.maximum(pid, 0)].add(
+        ok.astype(jnp.int32))
+
+
+def longest_tracks(keep: Array, pid: Array, track: Array, budget: int) -> Array:
+    """[..., C] bool: at most ``budget`` of the ``keep`` [..., C] entries along the last
+    axis, those whose map points (``pid`` [..., C], -1 none) have the longest tracks
+    (``track`` [N]); ties in their order."""
+    score = jnp.where(keep & (pid >= 0), track[jnp.maximum(pid, 0)], -1)
+    order = jnp.argsort(-score, axis=-1, stable=True)
+    rank = jnp.argsort(order, axis=-1, stable=True)
+    return keep & (rank < budget)
+
+
 def first_pass_keypoints(m: Map, idx: Array, cfg: LocalizeConfig) -> Array:
     """[..., K_max] bool: the keypoints of reference images ``idx`` [...] that the first
     pass renders (render mode) and matches: every valid one, or with
     ``cfg.first_pass_keypoints`` > 0 that many per image, those of the longest tracks first
     (3D points seen in the most reference images: the best triangulated, the likeliest in
     view of a query), ties in the map's keypoint order."""
-    egm = m.egm
-    mask = egm.kp_mask[idx]
+    mask = m.egm.kp_mask[idx]
     budget = cfg.first_pass_keypoints
     if budget <= 0 or budget >= mask.shape[-1]:
         return mask
-    pid = egm.point_idx
-    track = jnp.zeros(egm.points3d.shape[0], jnp.int32).at[jnp.maximum(pid, 0)].add(
-        (egm.kp_mask & (pid >= 0)).astype(jnp.int32))
-    score = jnp.where(mask & (pid[idx] >= 0), track[jnp.maximum(pid[idx], 0)], -1)
-    order = jnp.argsort(-score, axis=-1, stable=True)
-    rank = jnp.argsort(order, axis=-1, stable=True)
-    return mask & (rank < budget)
+    return longest_tracks(mask, m.egm.point_idx[idx], track_lengths(m), budget)
 
 
 def render_rows(field: Field, kp: Array, keep: Array, depth: Array, K: Array, R: Array,

@@ -37,7 +37,13 @@ from vrs_jax.features.matching import guided_match, match
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.pnp import PnPConfig, inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
-from vrs_jax.localize.render import first_pass_keypoints, render_at_pose, render_reference
+from vrs_jax.localize.render import (
+    first_pass_keypoints,
+    longest_tracks,
+    render_at_pose,
+    render_reference,
+    track_lengths,
+)
 from vrs_jax.maps import Map
 
 Array = Any
@@ -371,6 +377,8 @@ def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
             reused = first_pass_inlier_slots(m, s).reshape(-1) & cand
             seen = jnp.zeros(m.egm.points3d.shape[0], bool).at[jnp.maximum(pid, 0)].max(reused)
             keep = keep & ~seen[jnp.maximum(pid, 0)]
+        if cfg.guided_keypoints > 0:
+            keep = longest_tracks(keep, pid, track_lengths(m), cfg.guided_keypoints)
         gray, _, valid = jax.lax.map(
             lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
             (idx, keep.reshape(idx.shape[0], -1)))
