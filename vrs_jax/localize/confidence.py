@@ -134,7 +134,7 @@ def pass_disagreement(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.
 def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[str, np.ndarray]:
     """Each test's quantity [N]: inlier_ratio (inliers / matches), coverage, pass_shift (the
     passes' camera-centre distance / ``scale``), pass_rotation (degrees), guided_ratio
-    (guided-pass inliers / first-pass inliers; NaN without a guided pass)."""
+    (guided-pass inliers / first-pass inliers; NaN without a guided pass), n_inliers."""
     if not (np.isfinite(scale) and scale > 0):
         raise VrsError(f"pose_confidence needs a positive scene scale, got {scale}")
     n_inl = np.asarray(fields["n_inliers"], np.float64)
@@ -146,7 +146,13 @@ def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[
             "coverage": np.asarray(fields["inlier_coverage"], np.float64),
             "pass_shift": shift / scale, "pass_rotation": rot,
             "guided_ratio": np.where(n_guided >= 0, n_guided / np.maximum(n_first, 1.0),
-                                     np.nan)}
+                                     np.nan),
+            "n_inliers": n_inl}
+
+
+def has_pose(fields: Mapping[str, np.ndarray]) -> np.ndarray:
+    """[N] bool: a PnP pose (success and not the retrieval fallback)."""
+    return np.asarray(fields["success"], bool) & ~np.asarray(fields["fallback"], bool)
 
 
 def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
@@ -181,6 +187,18 @@ def confidence_scores(fields: Mapping[str, np.ndarray], scale: float,
     return score_quantities(evidence_quantities(fields, scale), cfg)
 
 
+def verdict_of_quantities(q: Mapping[str, np.ndarray], ok: np.ndarray,
+                          cfg: ConfidenceConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(confidence [N], verdict [N]) from the tests' quantities (:func:`evidence_quantities`)
+    and whether each result has a PnP pose (``ok`` [N] bool; without one: failed, 0)."""
+    scores = score_quantities(q, cfg)
+    conf = np.min(np.stack(list(scores.values())), axis=0)
+    ok = np.asarray(ok, bool)
+    conf = np.where(ok, np.clip(conf, 0.0, 1.0), 0.0)
+    verdict = np.where(~ok, "failed", np.where(conf >= LOCALIZED_AT, "localized", "uncertain"))
+    return conf, verdict.astype(object)
+
+
 def pose_confidence(fields: Mapping[str, np.ndarray], scale: float,
                     cfg: ConfidenceConfig = ConfidenceConfig()
                     ) -> tuple[np.ndarray, np.ndarray]:
@@ -192,12 +210,17 @@ def pose_confidence(fields: Mapping[str, np.ndarray], scale: float,
       scale: the scene scale (:func:`map_scale`), in the poses' units.
       cfg: the thresholds.
     """
-    scores = confidence_scores(fields, scale, cfg)
-    conf = np.min(np.stack(list(scores.values())), axis=0)
-    ok = np.asarray(fields["success"], bool) & ~np.asarray(fields["fallback"], bool)
-    conf = np.where(ok, np.clip(conf, 0.0, 1.0), 0.0)
-    verdict = np.where(~ok, "failed", np.where(conf >= LOCALIZED_AT, "localized", "uncertain"))
-    return conf, verdict.astype(object)
+    return verdict_of_quantities(evidence_quantities(fields, scale), has_pose(fields), cfg)
+
+
+def evidence(fields: Mapping[str, np.ndarray], scale: float,
+             cfg: ConfidenceConfig = ConfidenceConfig()) -> dict[str, np.ndarray]:
+    """Per result [N]: ``verdict``, ``confidence`` and every quantity they were read from
+    (:func:`evidence_quantities`; NaN where not defined), for records that let a wrong pose's
+    verdict be checked and changed thresholds be re-evaluated."""
+    q = evidence_quantities(fields, scale)
+    conf, verdict = verdict_of_quantities(q, has_pose(fields), cfg)
+    return {"verdict": verdict, "confidence": conf, **q}
 
 
 def weakest_test(fields: Mapping[str, np.ndarray], scale: float,
@@ -206,8 +229,7 @@ def weakest_test(fields: Mapping[str, np.ndarray], scale: float,
     scores = confidence_scores(fields, scale, cfg)
     names = np.array(list(scores))
     low = names[np.argmin(np.stack(list(scores.values())), axis=0)]
-    ok = np.asarray(fields["success"], bool) & ~np.asarray(fields["fallback"], bool)
-    return np.where(ok, low, "pnp").astype(object)
+    return np.where(has_pose(fields), low, "pnp").astype(object)
 
 
 def result_verdicts(m, results: Sequence, cfg: ConfidenceConfig = ConfidenceConfig()
