@@ -218,8 +218,11 @@ def evenly_spaced(n: int, k: int | None) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))
 
 
-def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneCtx | None:
-    """Load (building if needed) the map of scene ``name``; None if its data is absent."""
+def prepare_scene(name: str, args, log: Callable[[str], None] = print, need_nerf: bool = True
+                  ) -> SceneCtx | None:
+    """Load (building if needed) the map of scene ``name``; None if its data is absent.
+    ``need_nerf`` False: a map without a trained NeRF will do (real-patch mode only), and a map
+    built here stops after the EGM (a later build continues it)."""
     from vrs_jax import maps
 
     spec = SCENES[name]
@@ -243,8 +246,9 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneC
         map_dir = Path(args.work) / f"{name}-{cfg.name}" / "map"
         log(f"[{name}] map {map_dir} (built if missing; NeRF {cfg.nerf.max_steps} steps)")
         maps.build_map(scene, map_dir, cfg, progress=not args.quiet,
-                       log=lambda s: log(f"[{name}] {s}"), source_options=opts)
-    m = maps.load_map(map_dir)
+                       log=lambda s: log(f"[{name}] {s}"), source_options=opts,
+                       train_nerf=need_nerf)
+    m = maps.load_map(map_dir, require_ilm=need_nerf)
     if set(m.egm.names) != set(scene.references().names):
         raise VrsError(f"the map's reference images are not the {name} scene's references "
                        "(another split or dataset?)", map_dir)
@@ -438,7 +442,7 @@ def _per_query(q, results: list, m, cfg) -> dict[str, list]:
     patches rendered, and the pose confidence against map ``m`` with ``cfg.confidence``:
     ``verdict``, ``confidence`` and each quantity it reads (inlier_ratio, coverage,
     pass_shift, pass_rotation, guided_ratio, ...: localize.confidence.evidence; None where
-    not defined), so that which verdict a wrong pose got can be checked."""
+    not defined, as JSON reads it back), so that which verdict a wrong pose got can be checked."""
     from vrs_jax.eval import metrics
     from vrs_jax.localize.confidence import evidence, map_scale, result_fields
 
@@ -454,8 +458,10 @@ def _per_query(q, results: list, m, cfg) -> dict[str, list]:
             "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
             "matches": [int(r.n_matches) if r is not None else 0 for r in results],
             "rendered": [int(r.n_rendered) if r is not None else 0 for r in results],
-            **{k: v.tolist() for k, v in evidence(result_fields(results), map_scale(m),
-                                                   cfg.confidence).items()}}
+            **{k: [None if isinstance(x, float) and not math.isfinite(x) else x
+                   for x in v.tolist()]
+               for k, v in evidence(result_fields(results), map_scale(m),
+                                    cfg.confidence).items()}}
 
 
 def _inf(xs: list, missing: float = math.inf) -> list[float]:

@@ -13,7 +13,8 @@ truth, else wrong; every pose of a query localized against ANOTHER room's map is
 wrong-place retrieval).
 
 Real benchmark scenes (--scenes, benchmarks.common's scenes; each map from ``--map
-SCENE=DIR``, read only, else built into --bench-work as the benchmarks build it): each
+SCENE=DIR``, read only, else built into --bench-work as the benchmarks build it; with
+``--modes real`` alone a map needs no NeRF and one built here stops after the EGM): each
 scene's own queries (--max-queries) localized against its map with the map's own localize
 config (``cpu-small``), labelled by their error as above, and --cross-queries of each
 scene's queries localized against every OTHER scene's map (a wrong place: every PnP pose
@@ -261,8 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     ctxs = []
     if args.scenes:
         sa = scene_args(args)
-        ctxs = [c for c in (common.prepare_scene(n, sa) for n in common.parse_scenes(
-            args.scenes)) if c is not None]
+        nerf = "render" in args.modes  # real mode alone: no NeRF needed (EGM-only maps)
+        ctxs = [c for c in (common.prepare_scene(n, sa, need_nerf=nerf) for n in
+                            common.parse_scenes(args.scenes)) if c is not None]
     runs = []
     for floor in [None] + ([args.loose_min_inliers] if args.loose_min_inliers else []):
         if args.seeds:

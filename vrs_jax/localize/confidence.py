@@ -83,9 +83,13 @@ class ConfidenceConfig:
     # alone does not separate them; the inlier ratio and coverage do.)
     min_guided_ratio: float = 0.5
 
+    # Distinct inliers of the final pose below this: uncertain (score 0.5 x / thr below,
+    # 1 from twice the threshold on). MEASURED_PLACEHOLDER
+    min_inliers: int = 30
+
     def __post_init__(self):
         for f in ("min_inlier_ratio", "min_coverage", "max_pass_shift",
-                  "max_pass_rotation_deg", "min_guided_ratio"):
+                  "max_pass_rotation_deg", "min_guided_ratio", "min_inliers"):
             if not getattr(self, f) > 0:
                 raise VrsError(f"ConfidenceConfig.{f} must be > 0, got {getattr(self, f)}")
         for f in ("min_inlier_ratio", "min_coverage", "min_guided_ratio"):
@@ -168,6 +172,9 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
         d = np.maximum(d, 0.0)
         return np.where(d <= tol, 1.0 - 0.5 * d / tol, 0.5 * tol / np.maximum(d, tol))
 
+    def count(x, thr):  # a count: 0 at 0, 0.5 at thr, 1 from 2 thr on
+        return np.clip(0.5 * np.maximum(x, 0.0) / thr, 0.0, 1.0)
+
     g = np.asarray(q["guided_ratio"], np.float64)
     return {"inlier_ratio": high(np.asarray(q["inlier_ratio"], np.float64),
                                  cfg.min_inlier_ratio),
@@ -177,13 +184,14 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
             "pass_rotation": low(np.asarray(q["pass_rotation"], np.float64),
                                  cfg.max_pass_rotation_deg),
             "guided_ratio": np.where(np.isnan(g), 1.0,
-                                     high(np.nan_to_num(g, nan=1.0), cfg.min_guided_ratio))}
+                                     high(np.nan_to_num(g, nan=1.0), cfg.min_guided_ratio)),
+            "n_inliers": count(np.asarray(q["n_inliers"], np.float64), cfg.min_inliers)}
 
 
 def confidence_scores(fields: Mapping[str, np.ndarray], scale: float,
                       cfg: ConfidenceConfig) -> dict[str, np.ndarray]:
     """Each test's score [N] in [0, 1] (0.5 at its threshold; 1 where it does not apply):
-    inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio."""
+    inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio, n_inliers."""
     return score_quantities(evidence_quantities(fields, scale), cfg)
 
 
