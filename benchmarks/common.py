@@ -244,7 +244,8 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print, need_nerf
         nerf = {**dict(spec.nerf), **({"max_steps": steps} if steps else {})}
         cfg = maps.get_config(args.config, **nerf)
         map_dir = Path(args.work) / f"{name}-{cfg.name}" / "map"
-        log(f"[{name}] map {map_dir} (built if missing; NeRF {cfg.nerf.max_steps} steps)")
+        log(f"[{name}] map {map_dir} (built if missing; " + (
+            f"NeRF {cfg.nerf.max_steps} steps)" if need_nerf else "the EGM only)"))
         maps.build_map(scene, map_dir, cfg, progress=not args.quiet,
                        log=lambda s: log(f"[{name}] {s}"), source_options=opts,
                        train_nerf=need_nerf)

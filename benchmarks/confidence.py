@@ -2,7 +2,7 @@
 
     python -m benchmarks.confidence [--work DIR] [--seeds 0 1 2] [--queries 16]
         [--modes real render] [--loose-min-inliers 6] [--json FILE]
-        [--scenes fern,lego,scan24,fox --map fern=DIR ... [--cross-queries 4]]
+        [--scenes fern,lego,scan24,fox,walk [--map fern=DIR ...] [--cross-queries 4]]
 
 Synthetic rooms (--seeds; none: ``--seeds``): generates small rooms (one per seed: 24
 references and --queries queries at 160x120), builds a ``test`` map of each in --work
@@ -13,20 +13,33 @@ truth, else wrong; every pose of a query localized against ANOTHER room's map is
 wrong-place retrieval).
 
 Real benchmark scenes (--scenes, benchmarks.common's scenes; each map from ``--map
-SCENE=DIR``, read only, else built into --bench-work as the benchmarks build it; with
-``--modes real`` alone a map needs no NeRF and one built here stops after the EGM): each
-scene's own queries (--max-queries) localized against its map with the map's own localize
-config (``cpu-small``), labelled by their error as above, and --cross-queries of each
-scene's queries localized against every OTHER scene's map (a wrong place: every PnP pose
-there is wrong; queries carry their own K, so this works across datasets).
+SCENE=DIR``, read only, else built into --bench-work as the benchmarks build it, without
+its NeRF unless --train-nerf; a map without a trained NeRF is measured in real mode only):
+each scene's own queries (--max-queries) localized against its map with the map's own
+localize config (``cpu-small``), labelled by their error as above, and --cross-queries of
+each scene's queries localized against every OTHER scene's map (a wrong place: every PnP
+pose there is wrong; queries carry their own K, so this works across datasets).
 
 Prints, per labelled set (rooms or scene, mode, own or cross), how many wrong poses are
 flagged (uncertain or failed) and how many right ones are wrongly flagged, with the
 distribution of each test's quantity, and writes the per-result quantities to --json
-(--from-json re-evaluates the current thresholds on them without localizing). Every run
-is repeated with PnP accepting poses of --loose-min-inliers inliers (the configs' floor is
-12): most wrong poses are then PnP poses rather than failures, so they test the uncertain
-verdict's tests themselves.
+(--from-json re-evaluates the current thresholds on the rows of one or more such files,
+without localizing). Every run is repeated with PnP accepting poses of --loose-min-inliers
+inliers (the configs' floor is 12): most wrong poses are then PnP poses rather than
+failures, so they test the uncertain verdict's tests themselves.
+
+Calibration (ConfidenceConfig's numbers), before the benchmark maps' NeRFs exist:
+
+    python -m benchmarks.confidence --work outputs/confidence \\
+        --scenes fern,lego,scan24,fox,walk --bench-work outputs/confidence/scenes \\
+        --json docs/figures/confidence.json
+
+and with the benchmark maps (render mode on the scenes; the walk stays real-only):
+
+    python -m benchmarks.confidence --work outputs/confidence \\
+        --scenes fern,lego,scan24,fox,walk --bench-work outputs/confidence/scenes \\
+        --map fern=outputs/bench_work/fern-cpu-small/map ... (lego, scan24, fox) \\
+        --json docs/figures/confidence.json
 """
 
 from __future__ import annotations
@@ -82,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the map of a --scenes scene (read only); repeatable")
     p.add_argument("--bench-work", default=common.DEFAULT_WORK,
                    help="where a --scenes map without --map is built (as the benchmarks do)")
+    p.add_argument("--train-nerf", action="store_true",
+                   help="train the NeRF of a --scenes map built here (else it stops after the "
+                        "EGM, and that scene is measured in real mode only)")
     p.add_argument("--data-root", default=None,
                    help="the real datasets (default: $VRS_SHARED_DATA or ../shared/data)")
     p.add_argument("--max-queries", type=int, default=None,
@@ -90,9 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="queries of each real scene localized against each other scene's "
                         "map (evenly spaced)")
     p.add_argument("--json", default=None, help="per-result quantities and labels")
-    p.add_argument("--from-json", default=None, metavar="FILE",
-                   help="re-evaluate the current thresholds on a --json written before "
-                        "(no localization)")
+    p.add_argument("--from-json", nargs="+", default=None, metavar="FILE",
+                   help="re-evaluate the current thresholds on the rows of --json files "
+                        "written before, together (no localization)")
     return p
 
 
@@ -154,11 +170,14 @@ def scene_args(args) -> argparse.Namespace:
 
 def measure_scenes(ctxs: list, modes: list[str], cross_queries: int,
                    min_inliers: int | None = None) -> list[dict]:
-    """Per mode and real scene map (its own localize config): its own queries and
-    ``cross_queries`` of every other scene's (:func:`run`)."""
+    """Per mode and real scene map (its own localize config; render mode only on maps with
+    a trained NeRF): its own queries and ``cross_queries`` of every other scene's
+    (:func:`run`)."""
     out = []
     for mode in modes:
         for mc in ctxs:
+            if mode == "render" and mc.m.ilm is None:
+                continue  # a map without a trained NeRF renders nothing
             cfg = loose(common.localize_cfg(mc, mode), min_inliers)
             for qc in ctxs:
                 q = qc.queries if qc is mc else qc.queries.subset(
@@ -256,15 +275,18 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = ConfidenceConfig()
     if args.from_json:
-        rows = json.loads(Path(args.from_json).read_text())["rows"]
+        rows = [r for f in args.from_json for r in json.loads(Path(f).read_text())["rows"]]
         print(flag_table(reevaluate(rows, cfg)[0]))
+        print(describe(rows))
         return 0
     ctxs = []
     if args.scenes:
         sa = scene_args(args)
-        nerf = "render" in args.modes  # real mode alone: no NeRF needed (EGM-only maps)
-        ctxs = [c for c in (common.prepare_scene(n, sa, need_nerf=nerf) for n in
+        ctxs = [c for c in (common.prepare_scene(n, sa, need_nerf=args.train_nerf) for n in
                             common.parse_scenes(args.scenes)) if c is not None]
+        for c in ctxs:
+            if c.m.ilm is None and "render" in args.modes:
+                print(f"[{c.name}] the map has no trained NeRF: real mode only")
     runs = []
     for floor in [None] + ([args.loose_min_inliers] if args.loose_min_inliers else []):
         if args.seeds:
