@@ -274,6 +274,7 @@ def flag_table(table: dict[str, dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = ConfidenceConfig()
+    doc = common.base_doc("confidence", args, argv)  # the code as the run starts
     if args.from_json:
         rows = [r for f in args.from_json for r in json.loads(Path(f).read_text())["rows"]]
         print(flag_table(reevaluate(rows, cfg)[0]))
@@ -296,8 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     print(flag_table(ev["table"]))
     print(describe(ev["rows"]))
     if args.json:
-        common.write_json(args.json, {**common.base_doc("confidence", args, argv),
-                                      "config": dataclasses.asdict(cfg), **ev})
+        common.write_json(args.json, {**doc, "config": dataclasses.asdict(cfg), **ev})
     return 0
 
 
