@@ -287,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                             common.parse_scenes(args.scenes)) if c is not None]
         for c in ctxs:
             if c.m.ilm is None and "render" in args.modes:
-                print(f"[{c.name}] the map has no trained NeRF: real mode only")
+                print(f"[{c.name}] the map has no trained NeRF: no render-mode runs against it")
     runs = []
     for floor in [None] + ([args.loose_min_inliers] if args.loose_min_inliers else []):
         if args.seeds:
