@@ -52,7 +52,7 @@ from vrs_jax.errors import VrsError
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_WORK = "outputs/bench_work"
 DEFAULT_JSON_DIR = "outputs/benchmarks"
-RUNS_VERSION = 3
+RUNS_VERSION = 4  # 4: per-query verdict, confidence and the evidence it reads
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -218,8 +218,11 @@ def evenly_spaced(n: int, k: int | None) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))
 
 
-def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneCtx | None:
-    """Load (building if needed) the map of scene ``name``; None if its data is absent."""
+def prepare_scene(name: str, args, log: Callable[[str], None] = print, need_nerf: bool = True
+                  ) -> SceneCtx | None:
+    """Load (building if needed) the map of scene ``name``; None if its data is absent.
+    ``need_nerf`` False: a map without a trained NeRF will do (real-patch mode only), and a map
+    built here stops after the EGM (a later build continues it)."""
     from vrs_jax import maps
 
     spec = SCENES[name]
@@ -241,10 +244,12 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print) -> SceneC
         nerf = {**dict(spec.nerf), **({"max_steps": steps} if steps else {})}
         cfg = maps.get_config(args.config, **nerf)
         map_dir = Path(args.work) / f"{name}-{cfg.name}" / "map"
-        log(f"[{name}] map {map_dir} (built if missing; NeRF {cfg.nerf.max_steps} steps)")
+        log(f"[{name}] map {map_dir} (built if missing; " + (
+            f"NeRF {cfg.nerf.max_steps} steps)" if need_nerf else "the EGM only)"))
         maps.build_map(scene, map_dir, cfg, progress=not args.quiet,
-                       log=lambda s: log(f"[{name}] {s}"), source_options=opts)
-    m = maps.load_map(map_dir)
+                       log=lambda s: log(f"[{name}] {s}"), source_options=opts,
+                       train_nerf=need_nerf)
+    m = maps.load_map(map_dir, require_ilm=need_nerf)
     if set(m.egm.names) != set(scene.references().names):
         raise VrsError(f"the map's reference images are not the {name} scene's references "
                        "(another split or dataset?)", map_dir)
@@ -376,7 +381,8 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     """Localize the scene's queries with ``cfg`` (or reuse a matching record).
 
     Returns :func:`vrs_jax.eval.report.summarize`'s dict plus ``per_query`` (names, t_err_m,
-    R_err_deg (inf / 180 for failures), success, fallback, inliers, matches),
+    R_err_deg (inf / 180 for failures), success, fallback, inliers, matches, rendered, and
+    the pose confidence: verdict, confidence and the quantities it reads, :func:`_per_query`),
     ``localize_s_per_query`` (sum of the median stage times), ``wall_s``, ``measured_at``,
     ``reused`` and ``record``.
     """
@@ -407,13 +413,15 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     t0 = time.perf_counter()
     results, info = localize_scene(ctx.m, ctx.queries, cfg, progress=progress)
     wall = time.perf_counter() - t0
+    # the first pass alone: its pose and inliers, no guided pass (so no guided-ratio test)
     first = [None if r is None else r.replace(R=r.R_first, t=r.t_first,
                                                n_inliers=r.n_inliers_first,
+                                               n_inliers_guided=np.int32(-1),
                                                n_rendered=r.n_rendered_first) for r in results]
     out = {}
     for which, res in (("final", results), ("first", first)):
         s = summarize(ctx.queries, res, info, ctx.m, cfg, ctx.map_dir)
-        s["per_query"] = _per_query(ctx.queries, res)
+        s["per_query"] = _per_query(ctx.queries, res, ctx.m, cfg)
         if which == "first":  # the first pass alone: no guided stage, its rays only
             cfg1 = dataclasses.replace(cfg, guided_passes=0)
             s["timing_s"] = {**s["timing_s"], "guided": 0.0}
@@ -430,10 +438,14 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     return {**s, "reused": False, "record": str(path)}
 
 
-def _per_query(q, results: list) -> dict[str, list]:
+def _per_query(q, results: list, m, cfg) -> dict[str, list]:
     """Per-query errors (inf / 180 for a query without a result), success, inliers, matches,
-    patches rendered."""
+    patches rendered, and the pose confidence against map ``m`` with ``cfg.confidence``:
+    ``verdict``, ``confidence`` and each quantity it reads (inlier_ratio, coverage,
+    pass_shift, pass_rotation, guided_ratio, ...: localize.confidence.evidence; None where
+    not defined, as JSON reads it back), so that which verdict a wrong pose got can be checked."""
     from vrs_jax.eval import metrics
+    from vrs_jax.localize.confidence import evidence, map_scale, result_fields
 
     has = np.array([r is not None for r in results]) & np.asarray(q.has_pose, bool)
     R = np.stack([np.asarray(r.R, np.float64) if r is not None else np.eye(3)
@@ -446,7 +458,11 @@ def _per_query(q, results: list) -> dict[str, list]:
             "fallback": [bool(r is not None and r.fallback) for r in results],
             "inliers": [int(r.n_inliers) if r is not None else 0 for r in results],
             "matches": [int(r.n_matches) if r is not None else 0 for r in results],
-            "rendered": [int(r.n_rendered) if r is not None else 0 for r in results]}
+            "rendered": [int(r.n_rendered) if r is not None else 0 for r in results],
+            **{k: [None if isinstance(x, float) and not math.isfinite(x) else x
+                   for x in v.tolist()]
+               for k, v in evidence(result_fields(results), map_scale(m),
+                                    cfg.confidence).items()}}
 
 
 def _inf(xs: list, missing: float = math.inf) -> list[float]:

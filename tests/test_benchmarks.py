@@ -85,6 +85,16 @@ def test_localize_benchmark_json(localize_doc, loaded):
     # the baseline localizes the easy synthetic queries (real patches)
     assert _finite(doc["rows"][1]["median_t_cm"]) and doc["rows"][1]["median_t_cm"] < 5
     assert doc["maps"]["synthetic"]["n_queries_used"] == 2
+    from vrs_jax.localize.confidence import VERDICTS
+
+    for r in doc["rows"][:2]:  # each query's verdict and the evidence it was read from
+        pq = r["per_query"]
+        assert all(v in VERDICTS for v in pq["verdict"]) and len(pq["verdict"]) == 2
+        for k in ("confidence", "inlier_ratio", "coverage", "pass_shift", "pass_rotation",
+                  "guided_ratio", "n_inliers"):
+            assert len(pq[k]) == 2, k
+        for v, c, ok in zip(pq["verdict"], pq["confidence"], pq["success"], strict=True):
+            assert (v == "localized") == (c >= 0.5) and (v == "failed") == (not ok)
 
 
 def test_guided_runs_report_their_first_pass(base, tmp_path):
@@ -362,3 +372,26 @@ def test_track_benchmark_json_and_plot(tiny_map, stream_scene, tmp_path):
     assert _finite(rows["full"]["median_latency_s"], rows["track"]["median_latency_s"])
     assert doc["jump"]["dropped"] == [2, 3] and doc["jump"]["first_frame_after_gap"] == 3
     assert cv2.imread(str(png)) is not None
+
+
+def test_confidence_benchmark_on_scene_maps(tiny_map, tmp_path):
+    """benchmarks.confidence on benchmark-scene maps (here the tiny map under two scene
+    names, real mode, no rooms): own queries labelled by their error, every pose of the
+    other "scene"'s queries labelled wrong; --from-json re-evaluates to the same counts."""
+    from benchmarks import confidence
+
+    out = tmp_path / "conf.json"
+    argv = ["--seeds", "--scenes", "synthetic,fern", "--map", f"synthetic={tiny_map}",
+            "--map", f"fern={tiny_map}", "--modes", "real", "--max-queries", "3",
+            "--cross-queries", "2", "--loose-min-inliers", "0", "--json", str(out)]
+    assert confidence.main(argv) == 0
+    doc = json.loads(out.read_text())
+    rows = doc["rows"]
+    assert len(rows) == 2 * (3 + 2)
+    cross = [r for r in rows if r["map"] != r["queries"]]
+    assert len(cross) == 4 and all(r["label"] == "wrong" for r in cross)
+    assert {confidence.set_key(r) for r in rows} == {
+        f"{s} real {w}" for s in ("synthetic", "fern") for w in ("own", "cross")}
+    table, verdicts = confidence.reevaluate(rows, confidence.ConfidenceConfig())
+    assert list(verdicts) == [r["verdict"] for r in rows]
+    assert table == doc["table"]

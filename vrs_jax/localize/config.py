@@ -77,10 +77,11 @@ class TrackConfig:
     # predicted: constant velocity extrapolates its error with the gap; after a few lost
     # frames a full pass is cheaper than a failed tracking step plus a full pass.
     max_gap: int = 3
-    # Verdicts of a pose that may seed the motion prior. "uncertain" too: on real
-    # photographs the confidence calls many right poses uncertain (README), and a wrong seed
-    # only costs one tracking step, whose own acceptance (a "localized" verdict, inliers,
-    # jump) then fails and relocalizes the frame.
+    # Verdicts of a pose that may seed the motion prior. "uncertain" too: the confidence
+    # still calls some right poses uncertain (on real photographs it is calibrated in
+    # real-patch mode only: README), and a wrong seed only costs one tracking step, whose
+    # own acceptance (a "localized" verdict, inliers, jump) then fails and relocalizes the
+    # frame.
     prior_verdicts: tuple[str, ...] = ("localized", "uncertain")
 
     def __post_init__(self):
