@@ -153,8 +153,9 @@ def test_named_localize_config_comments_match_values():
     assert (cpu.top_k, cpu.query_keypoints, cpu.depth_guided, cpu.narrow_samples,
             cpu.narrow_fine, cpu.guided_passes, cpu.guided_sources, cpu.render_stride,
             cpu.early_exit_inliers, cpu.render_chunk, cpu.guided_radius,
-            cpu.guided_threshold_px, cpu.pnp.threshold_px) == (
-        5, 1024, True, 32, 16, 1, ("render",), 2, 30, 2048, 4.0, 2.0, 6.0)
+            cpu.guided_threshold_px, cpu.pnp.threshold_px, cpu.probe_grid,
+            cpu.first_pass_keypoints, cpu.guided_reuse_inliers, cpu.guided_keypoints) == (
+        5, 1024, True, 32, 8, 1, ("render",), 2, 30, 2048, 4.0, 2.0, 6.0, 2, 128, True, 192)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 

@@ -228,30 +228,32 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # pass (the paper has none, and it has not been measured at this scale).
     "paper": LocalizeConfig(top_k=5, query_keypoints=2048, depth_guided=False),
     # Two CPU cores: top-5 retrieval (as the paper), 1024 query keypoints, depth-guided
-    # sampling with 32 samples per ray around the keypoint's 3D point plus 16 resampled where
-    # the surface is, on every second patch sample (render_stride 2: 64 rays per 15 x 15 patch
-    # instead of 225, the rest interpolated). Measured on dtu_scan24's reference views with
-    # the cpu-small hash-grid field (benchmarks.fidelity --views 6): a rendered patch's
-    # nearest real descriptor is its own keypoint's 74.3% of the time with 32 + 16 at stride 2,
-    # 73.9% with 48 + 16, 64.5% with 24 + 8, 55.4% with 16 + 8 (55.0% at stride 1: the stride
-    # costs nothing); the grid's thin surfaces need the denser samples. 3072 MLP evaluations
-    # per patch, 0.57x the 225 x (16 + 8) of rendering every sample. The first pass stops
-    # rendering candidates once RANSAC has 30 inliers (with the IPE field: first-pass rays 3x
-    # fewer on the synthetic room, 2.3x on lego, 3.1x on fern at unchanged recall at 2 cm /
-    # 2 deg), so five candidates cost little more than three. Then, in render mode, one guided
-    # pass rendered from the first pose, matched within 4 px of the projections and refined
-    # with a 2 px inlier threshold (the seed's RANSAC keeps 6 px). Against top-3 with 8 px and
-    # 6 px (benchmarks.localize --localize top_k=3 --localize guided_radius=8 --localize
-    # guided_threshold_px=none, the same maps): render median on lego 1.18 cm instead of 1.37,
-    # on fern 1.61 instead of 2.62 (3 of 4 within 2 cm instead of 1), on scan24 0.66 mm
-    # instead of 0.89 (0.90 with 3 px); real patches within 2 cm / 2 deg on lego 69.2%
-    # instead of 53.8%, on fern 75% instead of 50%. Real mode makes no guided pass: the same
-    # pass with its stored descriptors gained on fern and scan24 and lost on lego (61.5%
-    # instead of 69.2%), as the IPE-era 8 px pass did. Chunks of 2048 rays: a guided pass
-    # renders a few thousand rays per image, and a chunk renders whole.
+    # sampling of every second patch sample (render_stride 2: 64 rays per 15 x 15 patch, the
+    # rest interpolated; measured on dtu_scan24 with 16 + 8 samples: 55.4% own-keypoint rate
+    # against 55.0% at stride 1). Each patch's 4 corner rays (probe_grid 2) take 32 samples
+    # around the keypoint's 3D point and every ray resamples 8 from their weights: 640 NeRF
+    # evaluations per patch instead of 64 x (32 + 16) = 3072. benchmarks.fidelity --views 6
+    # (own-keypoint rate, same maps): scan24 67.4% against 71.4% (16 resampled: 72.2% at
+    # 1152), fern 68.0% against 71.4%, the synthetic room 95.7% against 97.9%; 3 x 3 probes
+    # gain nothing (scan24 66.3%). The first pass renders each candidate's 128 keypoints of
+    # the longest tracks, best candidate first, and stops once RANSAC has 30 inliers; one
+    # guided pass then renders from the first pose at most 192 map points near a query
+    # keypoint (the longest tracks; the first pass's inliers keep their descriptors instead
+    # of being rendered again), matched within 4 px of their projections and refined with a
+    # 2 px inlier threshold (the seed's RANSAC keeps 6 px). Measured with benchmarks.localize
+    # on the synthetic room, fern, lego, scan24 and fox together against the previous
+    # setting (48 samples on every ray, every keypoint, an unbounded guided pass: 0.9-2.1 M
+    # evaluations per query): 0.18-0.30 M evaluations, recall at 1% / 1 deg 35 of 37 real
+    # queries against 33, at 2% / 2 deg 37 against 36; medians equal but on scan24 (0.28% of
+    # the scale against 0.19%) and fern (0.66% against 0.59%): the guided budget costs
+    # inliers there (README). Real mode makes no guided pass: the same pass with its stored
+    # descriptors gained on fern and scan24 and lost on lego (61.5% instead of 69.2% within
+    # 2 cm), as the IPE-era 8 px pass did. Chunks of 2048 rays.
     "cpu-small": LocalizeConfig(top_k=5, query_keypoints=1024, narrow_samples=32,
-                                narrow_fine=16, guided_passes=1, guided_sources=("render",),
+                                narrow_fine=8, probe_grid=2, first_pass_keypoints=128,
+                                guided_passes=1, guided_sources=("render",),
                                 guided_radius=4.0, guided_threshold_px=2.0,
+                                guided_reuse_inliers=True, guided_keypoints=192,
                                 render_stride=2, early_exit_inliers=30, render_chunk=2048),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
