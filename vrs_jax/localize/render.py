@@ -11,6 +11,7 @@ weights (:func:`render_probed`). Pure and jittable.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -106,8 +107,13 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Arra
     near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, probe.radii.shape)
     coarse = lambda o, d, r, n, f: render_rays_narrow(  # noqa: E731
         field, o, d, r, n, f, None, nerf_cfg, cfg.narrow_samples)
+    # chunks of as many patches as the rendered rays' chunks hold: a chunk of probes past
+    # the last valid keypoint is skipped as the rendered rays' are
+    side = (P - 1) // stride + 1
+    per_chunk = max(1, cfg.render_chunk // (side * side)) * g * g
     out = render_flat(coarse, (flat(probe.origins), flat(probe.directions), flat(probe.radii),
-                               flat(near), flat(far)), n_kp * g * g, cfg,
+                               flat(near), flat(far)), n_kp * g * g,
+                      dataclasses.replace(cfg, render_chunk=per_chunk),
                       keys=("t_vals", "weights"))
     kp_n = depth.shape[0]
     weights = out["weights"].reshape(kp_n, g, g, -1)
@@ -115,7 +121,6 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Arra
     W = jnp.asarray(interpolation_matrix(g, step)[::stride])  # [P', g]
     w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, P', P', S]
     rays = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
-    side = rays.radii.shape[1]
     t_rays = jnp.broadcast_to(t_vals[:, None, None], (kp_n, side, side, t_vals.shape[-1]))
     fine = lambda o, d, r, t, w: render_rays_resampled(  # noqa: E731
         field, o, d, r, t, w, None, nerf_cfg, cfg.narrow_fine)
