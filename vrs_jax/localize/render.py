@@ -26,6 +26,7 @@ from vrs_jax.features.descriptor import rgb_to_gray
 from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.maps import Map
+from vrs_jax.nerf.mipnerf import stratified_t_vals
 from vrs_jax.nerf.model import (
     Field,
     render_rays,
@@ -114,10 +115,12 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Arra
     out = render_flat(coarse, (flat(probe.origins), flat(probe.directions), flat(probe.radii),
                                flat(near), flat(far)), n_kp * g * g,
                       dataclasses.replace(cfg, render_chunk=per_chunk),
-                      keys=("t_vals", "weights"))
+                      keys=("weights",))
     kp_n = depth.shape[0]
-    weights = out["weights"].reshape(kp_n, g, g, -1)
-    t_vals = out["t_vals"].reshape(kp_n, g * g, -1)[:, 0]  # [Kp, S + 1]: one window a patch
+    weights = out["weights"].reshape(kp_n, g, g, -1)  # zeros where a chunk was skipped
+    # the probes' intervals, one window a patch (computed, not read back: a skipped chunk's
+    # zeros would make empty intervals)
+    t_vals = stratified_t_vals(None, near[:, 0, 0], far[:, 0, 0], cfg.narrow_samples, False)
     W = jnp.asarray(interpolation_matrix(g, step)[::stride])  # [P', g]
     w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, P', P', S]
     rays = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
