@@ -4,6 +4,7 @@ can be wrong gives one line naming the file."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 
 import jax
@@ -62,6 +63,42 @@ def test_save_load_roundtrip(tmp_path, descriptors):
     assert not maps.load_map(d, descriptors=False).has_descriptors
 
 
+def test_edited_config_field_that_keeps_shapes_is_refused(tmp_path):
+    """A hand edit of a map.json config field that leaves every array's shape as it was (the
+    patch's blur, the descriptor's clipping) loaded and localized with settings the map was
+    not built with; now the config recorded inside egm.npz at build time refuses it, naming
+    the field, and the restored value loads again."""
+    d = maps.save_map(_map(), tmp_path / "m")
+    original = (d / "map.json").read_text()
+    meta = json.loads(original)
+    meta["config"]["egm"]["features"]["patches"]["window_per_scale"] = 6.0
+    (d / "map.json").write_text(json.dumps(meta))
+    with pytest.raises(VrsError, match="changed after the map was built") as e:
+        maps.load_map(d)
+    msg = str(e.value)
+    assert "egm.features.patches.window_per_scale" in msg and "map.json" in msg
+    assert "\n" not in msg
+    (d / "map.json").write_text(original)
+    assert maps.load_map(d).config == _map().config
+
+
+def test_map_without_recorded_build_config_still_loads(tmp_path):
+    """Maps written before the build config was recorded inside egm.npz load as before."""
+    import io
+
+    d = maps.save_map(_map(), tmp_path / "m")
+    with np.load(d / "egm.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "map_config_json"}
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    (d / "egm.npz").write_bytes(buf.getvalue())
+    meta = json.loads((d / "map.json").read_text())
+    meta["files"]["egm.npz"] = {"sha256": hashlib.sha256(buf.getvalue()).hexdigest(),
+                                "bytes": len(buf.getvalue())}
+    (d / "map.json").write_text(json.dumps(meta))
+    assert maps.load_map(d).config == _map().config
+
+
 def test_edited_config_fails_instead_of_changing_meaning(tmp_path):
     d = maps.save_map(_map(), tmp_path / "m")
     meta = json.loads((d / "map.json").read_text())
@@ -71,12 +108,12 @@ def test_edited_config_fails_instead_of_changing_meaning(tmp_path):
     with pytest.raises(VrsError) as e:
         maps.load_map(d)
     assert "map.json" in str(e.value) or "egm.npz" in str(e.value)
-    meta["config"]["egm"]["k_max"] = 16
+    meta["config"]["egm"]["k_max"] = _map().config.egm.k_max
     meta["config"]["nerf"]["net_width"] = 999  # not the width the weights were trained with
     (d / "map.json").write_text(json.dumps(meta))
-    with pytest.raises(VrsError, match="another config") as e:
+    with pytest.raises(VrsError, match="changed after the map was built") as e:
         maps.load_map(d)
-    assert "ilm.npz" in str(e.value)
+    assert "nerf.net_width" in str(e.value) and "map.json" in str(e.value)
     meta["config"]["nerf"]["net_width"] = _map().config.nerf.net_width
     meta["config"]["nerf"]["unheard_of"] = 1
     (d / "map.json").write_text(json.dumps(meta))

@@ -11,7 +11,8 @@ A map folder holds::
                             as int8 steps of 1/16 px from the linked point's projection, log2
                             scale and angle as uint8, point indices in the fewest bytes, 3D
                             points as 16-32-bit fixed point, global descriptors as int8; all
-                            float32 again in memory
+                            float32 again in memory; and the MapConfig it was built with (JSON),
+                            against which map.json's config is checked on loading
     MAPDIR/descriptors.npz  the real-patch descriptors of the EGM keypoints (float16, as hloc
                             stores them): what the real-patch mode matches against; the VRS
                             map (rendered patches) never reads it
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -125,6 +127,44 @@ def _npz(arrays: dict[str, np.ndarray], compressed: bool = False) -> bytes:
 
 
 MAP_FILES = (META, EGM_FILE, DESC_FILE, ILM_FILE)
+# egm.npz member holding the MapConfig the map was built with (JSON, as uint8 bytes): a
+# hand-edited config field in map.json that keeps every array's shape (a patch sample count,
+# the descriptor's blur, a keypoint threshold) would otherwise load and localize silently
+# wrong. Maps written before it existed lack it and load as before.
+CONFIG_MEMBER = "map_config_json"
+
+
+def _config_json(cfg: dict) -> str:
+    """Canonical JSON text of a config dict (key order and tuple/list spelling removed)."""
+    return json.dumps(cfg, sort_keys=True, separators=(",", ":"))
+
+
+def _first_difference(a: Any, b: Any, path: str = "") -> tuple[str, Any, Any]:
+    """(dotted field path, value in a, value in b) of the first place two JSON values differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k, "<absent>") != b.get(k, "<absent>"):
+                return _first_difference(a.get(k, "<absent>"), b.get(k, "<absent>"),
+                                         f"{path}.{k}" if path else k)
+    return path or "config", a, b
+
+
+def _check_config_member(arrays: dict[str, np.ndarray], config: dict, p: Path) -> None:
+    """VrsError unless map.json's ``config`` is the one recorded in egm.npz at build time."""
+    raw = arrays.pop(CONFIG_MEMBER, None)
+    if raw is None:
+        return
+    try:
+        built = json.loads(np.asarray(raw, np.uint8).tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise VrsError("the map's recorded build config is unreadable (corrupt file?)",
+                       p.parent / EGM_FILE) from None
+    now = json.loads(_config_json(config))
+    if now != built:
+        field, edited, was = _first_difference(now, built)
+        raise VrsError(f"map.json's config was changed after the map was built ({field}: "
+                       f"{edited!r} in map.json, {was!r} in the built map): restore it or "
+                       "rebuild the map", p)
 
 
 def save_map(m: Map, folder: str | Path, stats: dict | None = None, measure: bool = False,
@@ -168,7 +208,10 @@ def save_map(m: Map, folder: str | Path, stats: dict | None = None, measure: boo
 
 def _write_blobs(m: Map, d: Path) -> dict[str, bytes]:
     """Write the map's data files into ``d`` (each atomically). Returns {name: bytes}."""
-    blobs = {EGM_FILE: _npz(egm_map.to_arrays(m.egm), compressed=EGM_COMPRESSED)}
+    arrays = dict(egm_map.to_arrays(m.egm))
+    arrays[CONFIG_MEMBER] = np.frombuffer(
+        _config_json(configio.to_dict(m.config)).encode("utf-8"), np.uint8)
+    blobs = {EGM_FILE: _npz(arrays, compressed=EGM_COMPRESSED)}
     if m.has_descriptors:
         blobs[DESC_FILE] = _npz(egm_map.descriptor_arrays(m.egm))
     if m.ilm is not None:
@@ -264,6 +307,7 @@ def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = T
     if EGM_FILE not in files:
         raise VrsError("map metadata lists no EGM", p)
     arrays = _npz_arrays(_read_checked(d, EGM_FILE, meta), d / EGM_FILE)
+    _check_config_member(arrays, meta["config"], p)
     desc = None
     if descriptors and DESC_FILE in files:
         desc = _npz_arrays(_read_checked(d, DESC_FILE, meta), d / DESC_FILE).get("local_desc")
