@@ -24,11 +24,13 @@ def test_console_scripts_and_experiment_wrappers():
     scripts = cfg["project"]["scripts"]
     for target in scripts.values():
         mod, fn = target.split(":")
+        assert mod == "vrs_jax.cli.scripts", target  # imports its command behind a handler
         assert callable(getattr(importlib.import_module(mod), fn)), target
     # every CLI module has its console script and its `python -m experiments.NAME` wrapper
     cli = sorted(p.stem for p in (ROOT / "vrs_jax" / "cli").glob("*.py")
-                 if p.stem not in ("__init__", "common"))
-    assert sorted(t.split(":")[0].rsplit(".", 1)[1] for t in scripts.values()) == cli
+                 if p.stem not in ("__init__", "common", "scripts"))
+    assert sorted(t.split(":")[1] for t in scripts.values()) == cli
+    assert all(f"vrs-jax-{n.replace('_', '-')}" in scripts for n in cli)
     for name in cli:
         wrapper = importlib.import_module(f"experiments.{name}")
         assert wrapper.main is importlib.import_module(f"vrs_jax.cli.{name}").main

@@ -1477,6 +1477,51 @@ def test_ctrl_c_while_a_command_starts_is_one_line(tmp_path):
     assert wrapper.main is localize.main
 
 
+def test_ctrl_c_while_a_console_script_starts_is_one_line(tmp_path, monkeypatch):
+    """The installed ``vrs-jax-NAME`` scripts imported their command (and jax) before any
+    handler was in place: a Ctrl-C then printed a traceback through the imports. They now
+    call ``vrs_jax.cli.scripts``, which imports the command behind ``program_main``: one
+    line, status 130. The command module sleeps while it is imported here."""
+    (tmp_path / "vrs_jax_cli_slow.py").write_text(
+        "import time\nprint('importing', flush=True)\ntime.sleep(30)\n"
+        "def main():\n    return 0\n")
+    code = ("import sys\n"
+            "import vrs_jax.cli.scripts as s\n"
+            "run = s._command('x')\n"
+            "s.program_main = (lambda real: lambda m, c: real('vrs_jax_cli_slow', c))("
+            "s.program_main)\n"
+            "sys.exit(run())\n")
+    assert_interrupted(*interrupt_program(code, "importing", 0.3, tmp_path)[::2])
+
+
+def test_ctrl_c_while_a_benchmark_starts_is_one_line(tmp_path):
+    """``python -m benchmarks.NAME`` imports jax at module level: a Ctrl-C then printed a
+    traceback through the imports. The package's ``__init__`` makes it one line, status
+    130, for programs run with ``-m`` only. A benchmark-like module that sleeps while it
+    is imported stands in for the real one."""
+    pkg = tmp_path / "benchpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text((REPO / "benchmarks" / "__init__.py").read_text())
+    (pkg / "slow.py").write_text("import time\nprint('importing', flush=True)\n"
+                                 "time.sleep(30)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(tmp_path)])}
+    p = subprocess.Popen([sys.executable, "-m", "benchpkg.slow"], cwd=tmp_path, env=env,
+                         text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert p.stdout.readline() == "importing\n"
+        time.sleep(0.3)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=30)
+    finally:
+        p.kill()
+    assert_interrupted(p.returncode, err)
+    # imported by a script or a test, the package leaves the interpreter's hook alone
+    r = subprocess.run([sys.executable, "-c", "import sys, benchmarks; "
+                        "print(sys.excepthook is sys.__excepthook__)"], cwd=REPO, env=env,
+                       text=True, capture_output=True, timeout=120)
+    assert r.stdout.strip() == "True", r.stderr
+
+
 def test_colmap_export_on_a_full_disk_keeps_the_old_model(tiny_map, tmp_path):
     """pycolmap does not report a failed write: on a full disk the export left truncated
     model files and said it had written the model (exit 0). Now it is written aside, read

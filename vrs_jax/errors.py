@@ -123,6 +123,26 @@ def program_main(module: str, caller: str) -> Callable[..., int]:
         return _stopped(130, True)
 
 
+def interrupt_while_starting_is_one_line() -> None:
+    """For a package whose modules run as programs (``python -m benchmarks.NAME``): called
+    from the package's ``__init__`` while ``python -m`` is still locating the module
+    (``sys.argv[0] == "-m"``, Python's documented value), a Ctrl-C during the seconds the
+    module's imports take (jax) ends with one line and status 130 instead of a traceback
+    through the imports. Anything else, and any other use of the package (imported by a test
+    or a script), is left as it was."""
+    if not sys.argv or sys.argv[0] != "-m":
+        return
+    previous = sys.excepthook
+
+    def hook(kind, value, tb):
+        if issubclass(kind, KeyboardInterrupt):
+            print("interrupted (Ctrl-C) while starting; nothing was done", file=sys.stderr)
+            _stopped(130, True)
+        previous(kind, value, tb)
+
+    sys.excepthook = hook
+
+
 def _stop_in(e: BaseException) -> KeyboardInterrupt | None:
     """The KeyboardInterrupt (or :class:`Terminated`) that ``e`` wraps: a signal raised
     inside a jax host callback (OpenCV's RANSAC in ``localize``) comes back as an XLA runtime
