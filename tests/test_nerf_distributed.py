@@ -101,3 +101,39 @@ def test_single_process_and_bad_settings(monkeypatch):
         distributed.initialize(None, None, 3)
     assert not distributed.is_multiprocess()
     assert len(distributed.mesh_devices(2)) in (1, 2)
+
+
+def test_two_processes_build_a_whole_map_in_one_command(small_synthetic_scene, tmp_path):
+    """``experiments.train --num-processes 2``: process 0 builds the EGM while process 1
+    waits for it, both train their cluster, process 0 writes the map, which loads with both
+    clusters trained for every step."""
+    from vrs_jax import maps
+
+    out = tmp_path / "map"
+    port = _free_port()
+    args = [sys.executable, "-m", "experiments.train", "--format", "7scenes", "--root",
+            str(small_synthetic_scene), "--config", "test", "--clusters", "2", "--steps",
+            str(STEPS), "--quiet", *[a for k, v in EVERY.items() for a in ("--set", f"{k}={v}")],
+            "--out", str(out), "--coordinator", f"localhost:{port}", "--num-processes", "2"]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+    env.pop("XLA_FLAGS", None)  # one CPU device per process
+    procs = [subprocess.Popen(args + ["--process-id", str(i)], cwd=REPO, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for i in (1, 0)]
+    logs = []
+    for p in procs:
+        try:
+            logs.append(p.communicate(timeout=300)[0])
+        except subprocess.TimeoutExpired:
+            for q in procs:
+                q.kill()
+            pytest.fail("2-process map build did not finish in 300 s")
+    for p, log in zip(procs, logs, strict=True):
+        assert p.returncode == 0, log[-3000:]
+    assert "process 1 of 2" in logs[0] and "process 0 of 2" in logs[1]
+    assert "EGM: features" in logs[1] and "EGM: features" not in logs[0]
+    assert (out / "nerf" / "checkpoints" / str(STEPS) / "commit_success.txt").is_file()
+    m = maps.load_map(out)
+    assert m.ilm.fields.params is not None and int(m.cluster.max()) == 1
+    assert json.loads((out / "map.json").read_text())["stats"]["ilm"]["steps"] == STEPS
+    assert not (tmp_path / "map.lock").exists()

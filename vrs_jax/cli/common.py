@@ -182,3 +182,35 @@ def record_run(out_dir: str | Path, args: argparse.Namespace, config=None,
     except VrsError as e:
         logging.getLogger("vrs_jax").warning("%s", e)
         return None
+
+
+def add_distributed_args(p: argparse.ArgumentParser) -> None:
+    """--coordinator / --num-processes / --process-id / --local-devices (jax.distributed)."""
+    g = p.add_argument_group(
+        "multi-process training (jax.distributed; one process per host or per GPU)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="address of process 0's coordinator service, the same for every "
+                        "process (default: $JAX_COORDINATOR_ADDRESS)")
+    g.add_argument("--num-processes", type=count_at_least(1), default=None, metavar="N",
+                   help="number of processes (default: $JAX_NUM_PROCESSES, else 1: a "
+                        "single-process run)")
+    g.add_argument("--process-id", type=count_at_least(0), default=None, metavar="I",
+                   help="this process's index 0..N-1 (default: $JAX_PROCESS_ID)")
+    g.add_argument("--local-devices", default=None, metavar="IDS",
+                   help="comma-separated local device ids this process uses (e.g. 0 for one "
+                        "GPU per process; default: all visible devices)")
+
+
+def init_distributed(args: argparse.Namespace) -> bool:
+    """Start jax.distributed from the parsed flags (before any JAX computation); True when
+    this is a multi-process run."""
+    from vrs_jax.nerf import distributed
+
+    ids = None
+    if args.local_devices:
+        try:
+            ids = [int(x) for x in args.local_devices.split(",")]
+        except ValueError:
+            raise VrsError(f"--local-devices {args.local_devices!r}: expected comma-separated "
+                           "integers") from None
+    return distributed.initialize(args.coordinator, args.num_processes, args.process_id, ids)

@@ -10,6 +10,12 @@ real-patch descriptors (for the real-patch mode). Then one Mip-NeRF per K-means 
 reference cameras is trained (orbax checkpoints; re-running resumes; a larger --steps continues
 a finished map). ``--format images`` takes a folder of unposed photos and poses them with
 pycolmap's incremental SfM first (work files in MAPDIR/sfm). Everything is written into --out.
+
+Multi-process (``jax.distributed``, one process per host or GPU, the same --out on a shared
+file system): run the same command once per process with ``--coordinator HOST0:PORT
+--num-processes N --process-id I``; process 0 builds the EGM while the others wait for it,
+then every process trains its shard of the clusters (use a multiple of N clusters) and
+process 0 writes the map.
 """
 
 from __future__ import annotations
@@ -19,8 +25,10 @@ import argparse
 from vrs_jax import maps
 from vrs_jax.cli.common import (
     HelpFormatter,
+    add_distributed_args,
     add_scene_args,
     count_at_least,
+    init_distributed,
     load_scene_from_args,
     positive_float,
     prog,
@@ -52,6 +60,7 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a NeRF config field, repeatable (e.g. patch_ray_fraction=0 "
                         "trains on whole images only, as the paper)")
+    add_distributed_args(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--verbose", action="store_true",
                    help="debug log lines, and COLMAP's log lines (SfM)")
@@ -69,24 +78,44 @@ def map_config(args: argparse.Namespace) -> maps.MapConfig:
 
 
 def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None = None) -> int:
+    import contextlib
     import time
     from pathlib import Path
 
     from vrs_jax import fileio
+    from vrs_jax.errors import VrsError
 
     start_run(args)
     t0 = time.perf_counter()
     cfg = map_config(args)
     out = Path(args.out)
     fileio.check_apart(out, [args.root])
-    with fileio.folder_lock(out):  # one run per map folder
-        fileio.check_writable(out)  # before any work starts
+    multi = init_distributed(args)  # before any JAX computation
+    if multi and (fmt or getattr(args, "format", None)) == "images":
+        raise VrsError("--format images poses the photos with SfM first, in one process: "
+                       "build the map with one process (--steps 1), then continue its "
+                       "training with a larger --steps and --num-processes")
+    from vrs_jax.nerf import distributed
+
+    primary = distributed.is_primary()
+    # one run per map folder: process 0 holds the lock (the other processes of a
+    # multi-process build train into the same folder by design)
+    with fileio.folder_lock(out) if primary else contextlib.nullcontext():
+        if primary:
+            fileio.check_writable(out)  # before any work starts
         scene = load_scene_from_args(args, fmt, sfm_dir=out / "sfm")
-        print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
-              f"reference and {int(scene.is_query.sum())} query images")
+        if multi:
+            import jax
+
+            print(f"process {jax.process_index()} of {jax.process_count()}: "
+                  f"{len(jax.local_devices())} local / {len(jax.devices())} global device(s)")
+        if primary:
+            print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
+                  f"reference and {int(scene.is_query.sum())} query images")
         maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
-                       source_options=scene_opts(args))
-        record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
+                       source_options=scene_opts(args), primary=primary)
+        if primary:
+            record_run(out, args, cfg, {"total": time.perf_counter() - t0}, argv)
     return 0
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -96,6 +97,20 @@ def _existing(out: Path, cfg: MapConfig, source: MapSource, prov: dict
     return old, meta.get("stats", {})
 
 
+def _wait_for_egm(out: Path, cfg: MapConfig, source: MapSource, prov: dict,
+                  log: Callable[[str], None], poll_s: float = 2.0) -> tuple[Map, dict]:
+    """A multi-process build's other processes: (map, stats) once process 0 has saved the
+    EGM into ``out`` (a map folder appears whole: :func:`vrs_jax.maps.map.save_map`). If
+    process 0 dies, JAX's distributed runtime ends the waiting processes."""
+    if not (out / map_io.META).is_file():
+        log("waiting for process 0 to build the EGM")
+        while not (out / map_io.META).is_file():
+            time.sleep(poll_s)
+    m, stats = _existing(out, cfg, source, prov)
+    assert m is not None
+    return m, stats
+
+
 def load_partial(folder: Path) -> Map:
     """A map folder as it stands (the NeRF may be missing), with its descriptors."""
     return map_io.load_map(folder, descriptors=True, require_ilm=False)
@@ -103,7 +118,8 @@ def load_partial(folder: Path) -> Map:
 
 def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool = True,
               minutes: float | None = None, source_options: dict[str, Any] | None = None,
-              log: Callable[[str], None] | None = None, train_nerf: bool = True) -> Path:
+              log: Callable[[str], None] | None = None, train_nerf: bool = True,
+              primary: bool = True) -> Path:
     """EGM (with real-patch descriptors), then the ILM; resumable.
 
     Args:
@@ -116,6 +132,10 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
       log: called with each progress line (default: the ``vrs_jax`` logger at INFO level;
         ``runrecord.setup_logging`` shows it).
       train_nerf: False stops after the EGM (a map without NeRF; a later call continues).
+      primary: False for processes 1..N-1 of a multi-process build (``jax.distributed``
+        started; the same ``out_dir`` on a shared file system): they wait for process 0's
+        EGM, train their shard of the clusters with it and write nothing but their part of
+        the checkpoints; process 0 (``primary``) builds the EGM and writes the map.
     Returns:
       the folder.
     """
@@ -123,14 +143,16 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
     out = Path(out_dir)
     source = scene_source(scene, source_options)
     prov = provenance(scene, source)
-    m, stats = _existing(out, cfg, source, prov)
+    m, stats = (_existing(out, cfg, source, prov) if primary
+                else _wait_for_egm(out, cfg, source, prov, log))
     if (m is not None and m.ilm is not None and m.config == cfg and train_nerf
             and "map_bytes" in stats):
         log("[1/3] EGM: already built, skipping")
         log("[2/3] ILM: already trained, skipping")
         log(f"[3/3] {describe(out)}")
         return out  # a finished map: nothing to write (works in a read-only folder too)
-    fileio.check_writable(out)
+    if primary:
+        fileio.check_writable(out)
     if m is None:
         log(f"[1/3] EGM: features, pairs, triangulation ({len(scene.references())} references)")
         egm, egm_stats = egm_build.build_egm(scene, cfg.egm, progress=progress)
@@ -153,6 +175,8 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
                                   patch_keypoints=(m.egm.keypoints, m.egm.kp_mask,
                                                    cfg.features.patches))
         res = nerf_train.train(prep, out / "nerf", minutes=minutes, progress=progress)
+        if not primary:
+            return out  # the map is process 0's to write
         done = int(res.state.step)
         stats["ilm"] = {"steps": done, "steps_per_s": res.steps_per_s, "train_s": res.seconds,
                         "history": res.history[-5:]}
@@ -164,6 +188,8 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
         m = m.replace(ilm=res.ilm, config=cfg)
     else:
         log("[2/3] ILM: already trained, skipping")
+    if not primary:
+        return out
     map_io.save_map(m, out, stats, measure=True, provenance=prov)
     log(f"[3/3] {describe(out)}")
     return out
