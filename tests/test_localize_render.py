@@ -17,6 +17,7 @@ from vrs_jax.localize.render import (
     nerf_evals_per_ray,
     rays_per_patch,
     render_at_pose,
+    render_points_at_pose,
     render_reference,
 )
 
@@ -67,6 +68,47 @@ def test_render_at_pose_renders_only_the_kept_keypoints(tiny):
     assert v.sum() > 0
     np.testing.assert_allclose(np.asarray(g)[v], np.asarray(g_all)[v], atol=2e-4)
     assert np.all(np.asarray(g)[~v] == 0)
+
+
+@pytest.mark.parametrize("clusters", [1, 2])
+def test_flat_render_at_pose_equals_the_per_image_render(tiny, clusters):
+    """The guided pass renders its kept keypoints of several reference images as one flat
+    list (one chunked render per cluster): each row equals the same keypoint rendered by
+    its own image's :func:`render_at_pose`, with its own cluster's NeRF (two clusters: the
+    second field's weights scaled, images alternating, so a row rendered by the wrong
+    cluster differs)."""
+    import jax
+
+    m = tiny
+    if clusters == 2:
+        fields = jax.tree.map(lambda x: jnp.concatenate([x, 1.3 * x]), m.ilm.fields)
+        cl = jnp.arange(len(m.names), dtype=jnp.int32) % 2
+        m = m.replace(ilm=m.ilm.replace(fields=fields, image_cluster=cl))
+    cfg = dataclasses.replace(localize.get_config("cpu-small"), render_chunk=256)
+    patches = m.config.features.patches
+    K, R, t = m.egm.K[2], m.egm.R[2], m.egm.t[2]
+    k_max = m.egm.kp_mask.shape[1]
+    rng = np.random.default_rng(1)
+    imgs = np.array([0, 1, 3])
+    keep = (rng.random((3, k_max)) < 0.3) & np.asarray(m.egm.kp_mask[imgs])
+    rows = np.flatnonzero(keep.reshape(-1))
+    img, slot = imgs[rows // k_max], rows % k_max
+    g, v = render_points_at_pose(m, jnp.asarray(img), jnp.asarray(slot),
+                                 jnp.ones(len(rows), bool), K, R, t, patches, cfg)
+    g, v = np.asarray(g), np.asarray(v)
+    assert v.sum() > 10
+    for a, i in enumerate(imgs):
+        want, _, ok = render_at_pose(m, jnp.int32(i), K, R, t, patches, cfg,
+                                     jnp.asarray(keep[a]))
+        sel = img == i
+        np.testing.assert_array_equal(v[sel], np.asarray(ok)[slot[sel]])
+        np.testing.assert_allclose(g[sel], np.asarray(want)[slot[sel]], atol=2e-4)
+    assert np.all(g[~v] == 0)
+    if clusters == 2:  # the other cluster's field renders these rows differently
+        other = m.replace(ilm=m.ilm.replace(image_cluster=1 - m.ilm.image_cluster))
+        g2, _ = render_points_at_pose(other, jnp.asarray(img), jnp.asarray(slot),
+                                      jnp.ones(len(rows), bool), K, R, t, patches, cfg)
+        assert np.max(np.abs(np.asarray(g2)[v] - g[v])) > 1e-2
 
 
 def test_probes_at_every_sample_render_as_every_ray_searching(tiny):

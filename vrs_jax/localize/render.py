@@ -141,7 +141,7 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
       kp: [Kp, 4] keypoints (x, y, scale, angle) in that camera; mask: [Kp] bool valid rows
         (a prefix: rendering stops after the last valid one); depth: [Kp] z-depth of each
         keypoint's 3D point (the depth-guided interval); K, R, t, dist: the camera;
-      near, far: [] the full sampler's ray interval.
+      near, far: the full sampler's ray interval, [] or per keypoint [Kp].
     """
     P = patches.size
     pr = rays_mod.patch_rays(kp, K, R, t, patches, dist)
@@ -158,9 +158,9 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
         shape = (kp.shape[0], P, P)
         if cfg.depth_guided:
             near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
-        else:
-            near_r = jnp.broadcast_to(near, shape)
-            far_r = jnp.broadcast_to(far, shape)
+        else:  # one interval for all rows ([]) or one per row ([Kp])
+            near_r = jnp.broadcast_to(jnp.asarray(near)[..., None, None], shape)
+            far_r = jnp.broadcast_to(jnp.asarray(far)[..., None, None], shape)
         render = sampler(field, nerf_cfg, cfg)
         if patches.mode == "literal":
             # overlapping axis-aligned patches share whole pixels: render each distinct
@@ -300,6 +300,42 @@ def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: Patc
     gray = render_rows(field, kp, valid, z, K, R, t, None, ilm.near[i], ilm.far[i], patches,
                        ilm.config, cfg)
     return gray, kp, valid
+
+
+def render_points_at_pose(m: Map, img: Array, slot: Array, keep: Array, K: Array, R: Array,
+                          t: Array, patches: PatchConfig, cfg: LocalizeConfig
+                          ) -> tuple[Array, Array]:
+    """:func:`render_at_pose` for a flat list of B map keypoints of several reference images
+    at once: keypoint ``slot`` [B] of reference image ``img`` [B] where ``keep`` [B], moved
+    into the camera (K, R, t) and rendered with its image's cluster NeRF. The kept rows of
+    all images share one chunked render per cluster (rows of other clusters skipped), so a
+    pass that renders a few keypoints of each of k images pays for its keypoints, not for k
+    padded renders. Returns grey patches [B, P, P] (zeros where not rendered) and the
+    validity [B] (kept, linked to a 3D point in front of the camera)."""
+    egm, ilm = m.egm, m.ilm
+    pid = egm.point_idx[img, slot]
+    X = egm.points3d[jnp.maximum(pid, 0)]
+
+    def move(kp, x, i):
+        k, z = rays_mod.transfer_keypoints(kp[None], x[None], egm.K[i], egm.R[i], egm.t[i],
+                                           egm.dist[i], K, R, t)
+        return k[0], z[0]
+
+    kp, z = jax.vmap(move)(egm.keypoints[img, slot], X, img)
+    valid = keep & egm.kp_mask[img, slot] & (pid >= 0) & (z > 1e-6)
+    kp = jnp.where(valid[:, None], kp, jnp.array([0.0, 0.0, 1.0, 0.0], kp.dtype))
+    cluster = ilm.image_cluster[img]
+
+    def one_cluster(c):
+        return render_rows(select_field(ilm.fields, c), kp, valid & (cluster == c), z, K, R,
+                           t, None, ilm.near[img], ilm.far[img], patches, ilm.config, cfg)
+
+    n_clusters = jax.tree.leaves(ilm.fields)[0].shape[0]
+    if n_clusters == 1:
+        gray = one_cluster(jnp.int32(0))
+    else:  # each row is rendered by its own cluster's pass; the others hold zeros there
+        gray = jnp.sum(jax.lax.map(one_cluster, jnp.arange(n_clusters)), axis=0)
+    return gray, valid
 
 
 def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:

@@ -40,7 +40,7 @@ from vrs_jax.localize.query import Query
 from vrs_jax.localize.render import (
     first_pass_keypoints,
     longest_tracks,
-    render_at_pose,
+    render_points_at_pose,
     render_reference,
     track_lengths,
 )
@@ -377,17 +377,24 @@ def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
             reused = first_pass_inlier_slots(m, s).reshape(-1) & cand
             seen = jnp.zeros(m.egm.points3d.shape[0], bool).at[jnp.maximum(pid, 0)].max(reused)
             keep = keep & ~seen[jnp.maximum(pid, 0)]
+        n_cand = keep.shape[0]
+        budget = n_cand
         if cfg.guided_keypoints > 0:
             keep = longest_tracks(keep, pid, track_lengths(m), cfg.guided_keypoints)
-        gray, _, valid = jax.lax.map(
-            lambda a: render_at_pose(m, a[0], q.K, res.R, res.t, patches, cfg, a[1]),
-            (idx, keep.reshape(idx.shape[0], -1)))
-        desc = describe_patches(gray, m.config.features.descriptor)
-        mask = valid.reshape(-1)
+            budget = min(cfg.guided_keypoints, n_cand)
+        # the kept candidates (at most the budget) first, as one flat list of rows
+        rows = jnp.argsort(~keep, stable=True)[:budget]
+        k_max = m.egm.point_idx.shape[1]
+        gray, valid = render_points_at_pose(m, idx[rows // k_max], rows % k_max, keep[rows],
+                                            q.K, res.R, res.t, patches, cfg)
+        d_rows = describe_patches(gray, m.config.features.descriptor)  # [B, D]
+        desc = jnp.zeros((n_cand, d_rows.shape[-1]), d_rows.dtype).at[rows].set(
+            jnp.where(valid[:, None], d_rows, 0.0))
+        mask = jnp.zeros(n_cand, bool).at[rows].set(valid)
         n_new = jnp.sum(mask).astype(jnp.int32)
         if cfg.guided_reuse_inliers and "inliers" in s:
             first = s["desc"].reshape(desc.shape)
-            desc = jnp.where(reused.reshape(desc.shape[:2])[..., None], first, desc)
+            desc = jnp.where(reused[:, None], first, desc)
             mask = mask | reused
     else:
         desc, mask = s["desc"], s["desc_mask"].reshape(-1)
