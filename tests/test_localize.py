@@ -427,3 +427,61 @@ def test_results_carry_the_inlier_geometry(loaded):
         assert 0.0 < float(r.inlier_depth_spread) < 10.0
         for f in ("inlier_coverage", "inlier_ray_angle_deg", "inlier_depth_spread"):
             assert float(getattr(r, f)) == pytest.approx(float(getattr(rt, f)), rel=1e-4), f
+
+
+def _centre_std_opencv(K, R, t, X, uv, sigma):
+    """Reference for centre_uncertainty: OpenCV's projection Jacobian in (rvec, tvec), the
+    covariance sigma^2 (J^T J)^-1 pushed through c = -R(rvec)^T t by finite differences."""
+    import cv2
+
+    rvec, _ = cv2.Rodrigues(R.astype(np.float64))
+    _, jac = cv2.projectPoints(X.astype(np.float64), rvec, t.astype(np.float64),
+                               K.astype(np.float64), None)
+    J = jac[:, :6]
+    cov = sigma ** 2 * np.linalg.inv(J.T @ J)
+
+    def centre(p):
+        Rm, _ = cv2.Rodrigues(p[:3])
+        return -Rm.T @ p[3:]
+
+    p0 = np.concatenate([rvec.ravel(), t.astype(np.float64)])
+    G = np.stack([(centre(p0 + e) - centre(p0 - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
+    return float(np.sqrt(np.linalg.eigvalsh(G @ cov @ G.T)[-1]))
+
+
+def test_centre_uncertainty_matches_opencv_and_grows_with_depth():
+    """The camera centre's standard deviation from the inliers (stages.centre_uncertainty)
+    equals OpenCV's linearised PnP covariance for the same points and residual spread; the
+    same image points 20x farther away fix the centre 20x worse (the uncertainty grows with
+    the inliers' depth); outliers do not count."""
+    from vrs_jax.localize.stages import centre_uncertainty
+
+    rng = np.random.default_rng(3)
+    K = np.array([[400.0, 0, 160], [0, 410.0, 120], [0, 0, 1]])
+    import cv2
+
+    R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
+    t = np.array([0.3, -0.1, 0.5])
+    n = 60
+    pix = rng.uniform([20, 20], [300, 220], (n, 2))
+    depth = rng.uniform(2.0, 6.0, n)
+    xc = np.concatenate([(pix - K[:2, 2]) / np.diag(K)[:2] * depth[:, None], depth[:, None]], 1)
+    X = (xc - t) @ R  # world points
+    noise = rng.normal(0, 0.7, (n, 2))
+    uv = pix + noise
+    inl = np.ones(n, bool)
+    inl[:5] = False
+    uv[:5] += 40.0  # outliers, not counted
+
+    def ours(Xw, uvq, mask):
+        f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+        return float(centre_uncertainty(f32(uvq), f32(K), f32(R), f32(t), f32(Xw),
+                                        jnp.asarray(mask)))
+
+    sigma = np.sqrt(np.sum(noise[inl] ** 2) / (2 * inl.sum() - 6))
+    want = _centre_std_opencv(K, R, t, X[inl], uv[inl], sigma)
+    got = ours(X, uv, inl)
+    assert abs(got - want) < 0.02 * want, (got, want)
+    far = (xc * 20.0 - t) @ R
+    assert 18 * got < ours(far, uv, inl) < 22 * got
+    assert np.isnan(ours(X, uv, np.arange(n) < 3))  # fewer than 4 inliers

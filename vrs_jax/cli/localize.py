@@ -316,12 +316,14 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
     if r is None:
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
                 "inlier_coverage": None, "inlier_ray_angle_deg": None,
-                "inlier_depth_spread": None, "confidence": 0.0, "verdict": "failed",
+                "inlier_depth_spread": None, "inlier_centre_std": None, "confidence": 0.0,
+                "verdict": "failed",
                 "error": error or "no result"}
     ok = bool(r.success)
     geo = {k: (float(v) if np.isfinite(v) else None) for k, v in (
         ("inlier_coverage", r.inlier_coverage), ("inlier_ray_angle_deg", r.inlier_ray_angle_deg),
-        ("inlier_depth_spread", r.inlier_depth_spread))}
+        ("inlier_depth_spread", r.inlier_depth_spread),
+        ("inlier_centre_std", getattr(r, "inlier_centre_std", np.nan)))}
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
             "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
             "confidence": round(confidence, 4), "verdict": verdict,

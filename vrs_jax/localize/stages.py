@@ -81,6 +81,10 @@ class LocalizeResult:
       keypoint was matched (the triangulation angle of the query with the map view).
     inlier_depth_spread: [] float32 (90th - 10th percentile) / median of the inliers' depths
       in the estimated camera (0: all at one depth).
+    inlier_centre_std: [] float32 standard deviation of the estimated camera centre along
+      its worst-determined direction, in map units, from the Gauss-Newton information of the
+      inliers' reprojections at their own residual spread (:func:`centre_uncertainty`):
+      large when the inliers cannot fix the translation (all far away, or few).
     """
 
     R: Array
@@ -100,6 +104,7 @@ class LocalizeResult:
     inlier_ray_angle_deg: Array
     inlier_depth_spread: Array
     n_keypoints: Array
+    inlier_centre_std: Array
 
 
 def failure_reason(r: LocalizeResult, min_inliers: int) -> str | None:
@@ -155,6 +160,48 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
     spread = (p90 - p10) / jnp.where(jnp.abs(p50) > 0, jnp.abs(p50), jnp.nan)
     f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
     return f32(coverage), f32(angle), f32(spread)
+
+
+def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
+                       inliers: Array) -> Array:
+    """[] float32 standard deviation of the camera centre, worst direction, in map units,
+    implied by a pose's inliers (NaN with fewer than 4).
+
+    Linearised PnP: each inlier's projection u(R, c) of its 3D point X (camera centre c,
+    x_cam = R (X - c)) has the 2 x 6 Jacobian in (rotation, centre) J = dpi/dx_cam
+    [-[x_cam]x, -R]; with a residual spread sigma (the inliers' reprojection RMS, unbiased
+    over 2n - 6 degrees of freedom, at least 0.25 px) the pose covariance is sigma^2
+    (sum J^T J)^-1, and the centre's block gives the largest standard deviation. Points far
+    away fix the rotation but hardly the centre; near, spread points fix both.
+
+    Args:
+      points2d: [Kq, 2] query keypoints; the 2D side of correspondence i is ``i % Kq``.
+      K: [3, 3]; R, t: the pose; X: [M, 3] the correspondences' 3D points; inliers: [M].
+    """
+    kq = points2d.shape[0]
+    uv = points2d[jnp.arange(X.shape[0]) % kq]
+    xc = X @ R.T + t  # [M, 3]
+    z = jnp.maximum(xc[:, 2], 1e-6)
+    fx, fy = K[0, 0], K[1, 1]
+    zero = jnp.zeros_like(z)
+    dpi = jnp.stack([jnp.stack([fx / z, zero, -fx * xc[:, 0] / z ** 2], -1),
+                     jnp.stack([zero, fy / z, -fy * xc[:, 1] / z ** 2], -1)], 1)  # [M, 2, 3]
+    x, y, w = xc[:, 0], xc[:, 1], xc[:, 2]
+    skew = jnp.stack([jnp.stack([zero, -w, y], -1), jnp.stack([w, zero, -x], -1),
+                      jnp.stack([-y, x, zero], -1)], 1)  # [x_cam]x [M, 3, 3]
+    J = jnp.einsum("mab,mbc->mac", dpi, jnp.concatenate(
+        [-skew, -jnp.broadcast_to(R, skew.shape)], -1))  # [M, 2, 6]
+    wt = (inliers & (xc[:, 2] > 1e-6)).astype(jnp.float32)
+    n = jnp.sum(wt)
+    proj = (xc[:, :2] / z[:, None]) * jnp.stack([fx, fy]) + K[:2, 2]
+    sse = jnp.sum(wt * jnp.sum((proj - uv) ** 2, -1))
+    sigma2 = jnp.maximum(sse / jnp.maximum(2.0 * n - 6.0, 1.0), 0.25 ** 2)
+    info = jnp.einsum("m,mai,maj->ij", wt, J, J)
+    scale = jnp.sqrt(jnp.maximum(jnp.diagonal(info), 1e-12))  # equilibrate before inverting
+    cov = jnp.linalg.inv(info / scale[:, None] / scale[None, :]) / scale[:, None] / scale[None, :]
+    ev = jnp.linalg.eigvalsh(0.5 * (cov[3:, 3:] + cov[3:, 3:].T))
+    std = jnp.sqrt(sigma2 * jnp.maximum(ev[-1], 0.0))
+    return jnp.where(n >= 4, std, jnp.nan).astype(jnp.float32)
 
 
 def reference_centers(m: Map, ref: Array) -> Array:
@@ -300,7 +347,9 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          n_rendered_first=s.get("n_rendered", jnp.int32(0)),
                          inlier_coverage=cov, inlier_ray_angle_deg=ang,
                          inlier_depth_spread=spread,
-                         n_keypoints=jnp.sum(q.mask).astype(jnp.int32))
+                         n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
+                         inlier_centre_std=centre_uncertainty(q.points2d, q.K, R, t, s["X"],
+                                                              pose.inliers))
     return {"result": res, "inliers": pose.inliers}
 
 
@@ -440,7 +489,10 @@ def guided_refine(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, res: Locali
                        n_rendered=res.n_rendered + n_new,
                        inlier_coverage=pick(geo[0], res.inlier_coverage),
                        inlier_ray_angle_deg=pick(geo[1], res.inlier_ray_angle_deg),
-                       inlier_depth_spread=pick(geo[2], res.inlier_depth_spread)
+                       inlier_depth_spread=pick(geo[2], res.inlier_depth_spread),
+                       inlier_centre_std=pick(centre_uncertainty(
+                           q.points2d, q.K, pose.R, pose.t, Xq, pose.inliers),
+                           res.inlier_centre_std)
                        ), pose.inliers & better
 
 

@@ -169,7 +169,8 @@ def start_result(q: Query, idx: Array, R: Array, t: Array) -> LocalizeResult:
                           n_inliers=i32, n_matches=i32, retrieved=idx, R_first=R, t_first=t,
                           n_inliers_first=i32, n_inliers_guided=jnp.int32(-1), n_rendered=i32,
                           n_rendered_first=i32, inlier_coverage=nan, inlier_ray_angle_deg=nan,
-                          inlier_depth_spread=nan, n_keypoints=jnp.sum(q.mask).astype(jnp.int32))
+                          inlier_depth_spread=nan, n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
+                          inlier_centre_std=nan)
 
 
 def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
@@ -280,6 +281,7 @@ class TrackResult:
     inlier_ray_angle_deg: float
     inlier_depth_spread: float
     n_keypoints: int
+    inlier_centre_std: float = float("nan")
     tracked: bool = False
     attempted: bool = False
     rejected: str | None = None
