@@ -40,6 +40,7 @@ from vrs_jax.errors import VrsError, cli_main
 from vrs_jax.eval import metrics
 from vrs_jax.localize import Localizer
 from vrs_jax.localize.config import TrackConfig
+from vrs_jax.localize.track import frame_image
 
 RUNS = ("track", "full", "sift")
 RIGHT = (0.02, 2.0)  # "right again" after a jump: 2% of the scene scale, 2 deg
@@ -117,7 +118,7 @@ def run_track(loc: Localizer, queries, idx: np.ndarray, progress: bool) -> dict:
     """Track frames ``idx`` of the stream; per-frame arrays of the run."""
     tracks = loc.track([queries.image_paths[i] for i in idx], [queries.K[i] for i in idx],
                        [queries.dist[i] for i in idx], names=[queries.names[i] for i in idx],
-                       progress=progress)
+                       progress=progress, sizes=[queries.sizes[i] for i in idx])
     dt, dr = errors_of(queries, [tr.localize_result() for tr in tracks], idx)
     return {"frames": idx.tolist(), "t_err": dt.tolist(), "R_err_deg": dr.tolist(),
             "latency_s": [tr.latency_s for tr in tracks],
@@ -140,8 +141,10 @@ def run_full(loc: Localizer, queries, idx: np.ndarray, progress: bool) -> dict:
     for i in tqdm(idx, desc="full", unit="frame", disable=not progress):
         t0 = time.perf_counter()
         try:
-            r = loc.localize_query(loc.prepare(queries.image_paths[i], queries.K[i],
-                                               queries.dist[i]))
+            # read at the scene's size: a --downscale'd scene's K fit the scaled image
+            r = loc.localize_query(loc.prepare(
+                frame_image(queries.image_paths[i], queries.sizes[i]), queries.K[i],
+                queries.dist[i], name=queries.names[i]))
         except VrsError:
             r = None
         results.append(r)

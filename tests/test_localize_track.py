@@ -60,6 +60,30 @@ def test_stream_is_tracked_within_the_render_bound(loc, stream):
     assert track.track_step._cache_size() == compiled
 
 
+def test_frames_of_a_downscaled_dataset_are_read_at_its_size(loc, stream, tmp_path):
+    """A dataset read with --downscale has K for the scaled images while its files keep
+    their own size: the frames were read at the file's size and all flagged ("K belongs to
+    another image size"; the tracking benchmark on fox: 10 of 10). With ``sizes`` they are
+    read at the scene's size and tracked as the files of that size are."""
+    import cv2
+
+    idx = [0, 1, 2]
+    big = []
+    for i in idx:  # the same frames stored at three times the size
+        img = cv2.imread(str(stream.image_paths[i]), cv2.IMREAD_UNCHANGED)
+        p = tmp_path / f"big_{i}.png"
+        cv2.imwrite(str(p), cv2.resize(img, None, fx=3, fy=3, interpolation=cv2.INTER_AREA))
+        big.append(p)
+    flagged = loc.track(big, stream.K[0])
+    assert all(r.error is not None and "another image size" in r.error for r in flagged)
+    out = loc.track(big, stream.K[0], sizes=[stream.sizes[i] for i in idx])
+    for r, i in zip(out, idx, strict=True):
+        dt, dr = _errors(r, stream, i)
+        assert r.error is None and r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+    with pytest.raises(VrsError, match="sizes"):
+        loc.track(big, stream.K[0], sizes=[stream.sizes[0]])
+
+
 def test_a_jump_is_relocalized_and_recovers(loc, stream):
     """Frames 3-6 dropped: the prediction for frame 7 is four frames behind (~19 cm,
     ~14 deg), so its tracking is rejected and it is localized in full; then tracking

@@ -273,7 +273,8 @@ def localize_sequence(m: maps.Map, queries, cfg: localize.LocalizeConfig,
     w, h = (int(s) for s in queries.sizes[0])
     loc.warmup(w, h, track=True)
     tracks = loc.track(list(queries.image_paths), queries.K, list(queries.dist),
-                       names=list(queries.names), progress=progress)
+                       names=list(queries.names), progress=progress,
+                       sizes=list(queries.sizes))  # K of a --downscale'd scene fit these
     results = [tr.localize_result() for tr in tracks]
     done = [r for r in results if r is not None]
     rays = rays_rendered(m, cfg, results)

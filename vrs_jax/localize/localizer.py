@@ -132,8 +132,8 @@ class Localizer:
         return jax.device_get(self._localize_cached(q))
 
     def track(self, frames: Sequence[Any], K: np.ndarray, dist: np.ndarray | None = None,
-              names: Sequence[str] | None = None, progress: bool = False
-              ) -> list[track_lib.TrackResult]:
+              names: Sequence[str] | None = None, progress: bool = False,
+              sizes: Sequence[Any] | None = None) -> list[track_lib.TrackResult]:
         """Localize a stream of frames in order, tracking with a motion prior
         (:mod:`~vrs_jax.localize.track`): the first frame, and any frame whose tracking is
         rejected, is localized in full (:meth:`localize_query`); the others run only the
@@ -146,6 +146,9 @@ class Localizer:
           dist: None, one [5] OpenCV distortion, or one per frame (entries may be None).
           names: per frame, for results and messages (default: the path or "frame i").
           progress: show a progress bar.
+          sizes: per frame the (width, height) a frame file is read at, when K belongs to
+            scaled images (a dataset read with ``--downscale``: ``scene.sizes``); None: the
+            file's own size.
         Returns:
           per frame a :class:`~vrs_jax.localize.track.TrackResult`: the LocalizeResult
           fields plus ``tracked``, ``confidence``, ``verdict``, ``latency_s``; an unreadable
@@ -156,7 +159,8 @@ class Localizer:
           one per frame.
         """
         return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
-                                      self.localize_query, names=names, progress=progress)
+                                      self.localize_query, names=names, progress=progress,
+                                      sizes=sizes)
 
     def _localize_cached(self, q: Query) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered

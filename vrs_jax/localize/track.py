@@ -365,17 +365,19 @@ def stream_inputs(frames: Sequence[Any], K: Any, dist: Any = None
     return list(frames), Ks, dists
 
 
-def frame_image(frame: Any) -> np.ndarray:
-    """A frame as an array: read from its file (VrsError naming it), or the array itself."""
+def frame_image(frame: Any, size: Any = None) -> np.ndarray:
+    """A frame as an array: read from its file (VrsError naming it; at ``size`` (w, h) when
+    given), or the array itself."""
     if isinstance(frame, (str, Path)):
-        return read_gray(frame)
+        return read_gray(frame, size=None if size is None else tuple(int(v) for v in size))
     return np.asarray(frame)
 
 
 def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dist: Any,
                  prepare: Callable[..., Query], full: Callable[[Query], LocalizeResult],
                  names: Sequence[str] | None = None, progress: bool = False,
-                 step: Callable[..., LocalizeResult] = track_step) -> list[TrackResult]:
+                 step: Callable[..., LocalizeResult] = track_step,
+                 sizes: Sequence[Any] | None = None) -> list[TrackResult]:
     """Track a stream: per frame a :class:`TrackResult`, in order (module docstring).
 
     Args:
@@ -386,10 +388,14 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         with its descriptor cache).
       names: per frame (default: the path, or "frame i").
       progress: a progress bar.
+      sizes: per frame the (width, height) a frame file is read at (a dataset read with
+        ``--downscale``, whose K belong to the scaled images); None: the file's own size.
     """
     frames, Ks, dists = stream_inputs(frames, K, dist)
     if names is not None and len(names) != len(frames):
         raise VrsError(f"track: {len(frames)} frames but {len(names)} names")
+    if sizes is not None and len(sizes) != len(frames):
+        raise VrsError(f"track: {len(frames)} frames but {len(sizes)} sizes")
     tc = cfg.track
     scale = map_scale(m)
     k = min(cfg.top_k, m.egm.num_images)
@@ -403,7 +409,7 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         name = names[i] if names is not None else (str(f) if isinstance(f, (str, Path))
                                                    else f"frame {i}")
         try:
-            gray = frame_image(f)
+            gray = frame_image(f, None if sizes is None else sizes[i])
             q = prepare(gray, Ks[i], dists[i], name)
         except VrsError as e:
             out.append(flagged(name, str(e), k, time.perf_counter() - t0))
