@@ -32,6 +32,30 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _start(args: list[str], ids) -> list[subprocess.Popen]:
+    """The processes ``args + --process-id I`` for I in ``ids``, one CPU device each."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+    env.pop("XLA_FLAGS", None)  # one CPU device per process
+    return [subprocess.Popen(args + ["--process-id", str(i)], cwd=REPO, env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            for i in ids]
+
+
+def _finish(procs: list[subprocess.Popen], timeout: int, what: str) -> list[str]:
+    """Each process's output once all exited with status 0 (test failure otherwise)."""
+    logs = []
+    for p in procs:
+        try:
+            logs.append(p.communicate(timeout=timeout)[0])
+        except subprocess.TimeoutExpired:
+            for q in procs:
+                q.kill()
+            pytest.fail(f"{what} did not finish in {timeout} s")
+    for p, log in zip(procs, logs, strict=True):
+        assert p.returncode == 0, log[-3000:]
+    return logs
+
+
 def test_two_processes_train_the_same_map_as_one(toy_nerf, tmp_path):
     root = toy_nerf
     out = tmp_path / "two"
@@ -41,25 +65,12 @@ def test_two_processes_train_the_same_map_as_one(toy_nerf, tmp_path):
             "--clusters", "2", "--steps", str(STEPS), "--views", "1", "--quiet",
             "--minutes", "10", *[a for k, v in EVERY.items() for a in ("--set", f"{k}={v}")],
             "--out", str(out), "--coordinator", f"localhost:{port}", "--num-processes", "2"]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
-    env.pop("XLA_FLAGS", None)  # one CPU device per process
-    procs = [subprocess.Popen(args + ["--process-id", str(i)], cwd=REPO, env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for i in range(2)]
+    procs = _start(args, range(2))
     # Meanwhile, the single-process reference: same scene, config, seed and steps.
     cfg = get_config("test", n_clusters=2, **EVERY)
     scene = load_scene("nerf", root, query_every=4)
     ref = T.train(T.prepare(scene, cfg, near=2.0, far=6.0), None, steps=STEPS, progress=False)
-    logs = []
-    for p in procs:
-        try:
-            logs.append(p.communicate(timeout=240)[0])
-        except subprocess.TimeoutExpired:
-            for q in procs:
-                q.kill()
-            pytest.fail("2-process training did not finish in 240 s")
-    for p, log in zip(procs, logs, strict=True):
-        assert p.returncode == 0, log[-3000:]
+    logs = _finish(procs, 240, "2-process training")
     assert "process 0 of 2: 1 local / 2 global device(s)" in logs[0]
     assert "process 1 of 2" in logs[1]
     # Both processes wrote one orbax checkpoint together; process 0 wrote the map.
@@ -115,21 +126,7 @@ def test_two_processes_build_a_whole_map_in_one_command(small_synthetic_scene, t
             str(small_synthetic_scene), "--config", "test", "--clusters", "2", "--steps",
             str(STEPS), "--quiet", *[a for k, v in EVERY.items() for a in ("--set", f"{k}={v}")],
             "--out", str(out), "--coordinator", f"localhost:{port}", "--num-processes", "2"]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
-    env.pop("XLA_FLAGS", None)  # one CPU device per process
-    procs = [subprocess.Popen(args + ["--process-id", str(i)], cwd=REPO, env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for i in (1, 0)]
-    logs = []
-    for p in procs:
-        try:
-            logs.append(p.communicate(timeout=300)[0])
-        except subprocess.TimeoutExpired:
-            for q in procs:
-                q.kill()
-            pytest.fail("2-process map build did not finish in 300 s")
-    for p, log in zip(procs, logs, strict=True):
-        assert p.returncode == 0, log[-3000:]
+    logs = _finish(_start(args, (1, 0)), 300, "2-process map build")
     assert "process 1 of 2" in logs[0] and "process 0 of 2" in logs[1]
     assert "EGM: features" in logs[1] and "EGM: features" not in logs[0]
     assert (out / "nerf" / "checkpoints" / str(STEPS) / "commit_success.txt").is_file()
