@@ -80,6 +80,12 @@ def test_size_contradicting_K(loc, queries):
     with pytest.raises(VrsError, match=f"{w}x{h}"):
         loc.localize_image(gray, K2)
     check_intrinsics(w, h, K)  # the right K passes
+    K_half = K.copy()
+    K_half[:2] /= 2  # the K of an image half as large: its principal point at a quarter
+    with pytest.raises(VrsError, match="principal point"):
+        check_intrinsics(w, h, K_half)
+    with pytest.raises(VrsError, match="principal point"):
+        check_intrinsics(2 * w, 2 * h, K)
     with pytest.raises(VrsError, match="principal point"):
         check_intrinsics(h, w, np.array([[100, 0, 150], [0, 100, 10], [0, 0, 1.0]]))
     with pytest.raises(VrsError, match=r"\[H, W\]"):

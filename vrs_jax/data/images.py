@@ -37,8 +37,11 @@ def check_size(actual: tuple[int, int], declared: tuple[float, float], path: str
 # (|cx - w/2| <= f * w and |cy - h/2| <= f * h), and the size it implies, (2 cx, 2 cy), must
 # have the image's aspect ratio within this slack (same_aspect). Real cameras keep it within a
 # few percent of the centre; a K meant for another image size (the full-resolution K with a
-# half-size image, a transposed image) puts it at the border, outside, or off the diagonal.
-PRINCIPAL_POINT_TOLERANCE = 0.25
+# half-size image, a transposed image) puts it at the border, outside, or off the diagonal,
+# and a K for an image half as large as the one given (a half-size K with the full image)
+# puts it a quarter of the size from the centre: 0.15 refuses that (at 0.25 it passed by
+# equality) and every scale above 1.4x, and still admits any real camera's offset.
+PRINCIPAL_POINT_TOLERANCE = 0.15
 
 
 def check_intrinsics(width: int, height: int, K: np.ndarray, name: str = "image") -> None:
