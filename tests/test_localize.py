@@ -430,30 +430,33 @@ def test_results_carry_the_inlier_geometry(loaded):
 
 
 def _centre_std_opencv(K, R, t, X, uv, sigma):
-    """Reference for centre_uncertainty: OpenCV's projection Jacobian in (rvec, tvec), the
-    covariance sigma^2 (J^T J)^-1 pushed through c = -R(rvec)^T t by finite differences."""
+    """Reference for centre_uncertainty: OpenCV's projection Jacobian in (rvec, tvec) and in
+    the focal lengths (a zoom: fx d/dfx + fy d/dfy), the covariance sigma^2 (J^T J)^-1
+    pushed through c = -R(rvec)^T t by finite differences."""
     import cv2
 
     rvec, _ = cv2.Rodrigues(R.astype(np.float64))
     _, jac = cv2.projectPoints(X.astype(np.float64), rvec, t.astype(np.float64),
                                K.astype(np.float64), None)
-    J = jac[:, :6]
+    J = np.concatenate([jac[:, :6], K[0, 0] * jac[:, 6:7] + K[1, 1] * jac[:, 7:8]], 1)
     cov = sigma ** 2 * np.linalg.inv(J.T @ J)
 
     def centre(p):
         Rm, _ = cv2.Rodrigues(p[:3])
-        return -Rm.T @ p[3:]
+        return -Rm.T @ p[3:6]
 
-    p0 = np.concatenate([rvec.ravel(), t.astype(np.float64)])
-    G = np.stack([(centre(p0 + e) - centre(p0 - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
+    p0 = np.concatenate([rvec.ravel(), t.astype(np.float64), [0.0]])
+    G = np.stack([(centre(p0 + e) - centre(p0 - e)) / 2e-6 for e in np.eye(7) * 1e-6], 1)
     return float(np.sqrt(np.linalg.eigvalsh(G @ cov @ G.T)[-1]))
 
 
 def test_centre_uncertainty_matches_opencv_and_grows_with_depth():
-    """The camera centre's standard deviation from the inliers (stages.centre_uncertainty)
-    equals OpenCV's linearised PnP covariance for the same points and residual spread; the
-    same image points 20x farther away fix the centre 20x worse (the uncertainty grows with
-    the inliers' depth); outliers do not count."""
+    """The camera centre's standard deviation from the inliers (stages.centre_uncertainty,
+    focal length free) equals OpenCV's linearised PnP covariance for the same points and
+    residual spread; the same image points 20x farther away fix the centre 20x worse (the
+    uncertainty grows with the inliers' depth); points all near one depth fix it far worse
+    than points at several (a step along the axis looks like a zoom); outliers do not
+    count."""
     from vrs_jax.localize.stages import centre_uncertainty
 
     rng = np.random.default_rng(3)
@@ -464,9 +467,14 @@ def test_centre_uncertainty_matches_opencv_and_grows_with_depth():
     t = np.array([0.3, -0.1, 0.5])
     n = 60
     pix = rng.uniform([20, 20], [300, 220], (n, 2))
+
+    def world(depth):
+        xc = np.concatenate([(pix - K[:2, 2]) / np.diag(K)[:2] * depth[:, None],
+                             depth[:, None]], 1)
+        return (xc - t) @ R
+
     depth = rng.uniform(2.0, 6.0, n)
-    xc = np.concatenate([(pix - K[:2, 2]) / np.diag(K)[:2] * depth[:, None], depth[:, None]], 1)
-    X = (xc - t) @ R  # world points
+    X = world(depth)
     noise = rng.normal(0, 0.7, (n, 2))
     uv = pix + noise
     inl = np.ones(n, bool)
@@ -478,10 +486,14 @@ def test_centre_uncertainty_matches_opencv_and_grows_with_depth():
         return float(centre_uncertainty(f32(uvq), f32(K), f32(R), f32(t), f32(Xw),
                                         jnp.asarray(mask)))
 
-    sigma = np.sqrt(np.sum(noise[inl] ** 2) / (2 * inl.sum() - 6))
+    sigma = np.sqrt(np.sum(noise[inl] ** 2) / (2 * inl.sum() - 7))
     want = _centre_std_opencv(K, R, t, X[inl], uv[inl], sigma)
     got = ours(X, uv, inl)
     assert abs(got - want) < 0.02 * want, (got, want)
-    far = (xc * 20.0 - t) @ R
-    assert 18 * got < ours(far, uv, inl) < 22 * got
-    assert np.isnan(ours(X, uv, np.arange(n) < 3))  # fewer than 4 inliers
+    assert 18 * got < ours(world(20.0 * depth), uv, inl) < 22 * got
+    one_depth = world(rng.uniform(3.9, 4.1, n))  # the same image points, one depth
+    want_flat = _centre_std_opencv(K, R, t, one_depth[inl], uv[inl], sigma)
+    got_flat = ours(one_depth, uv, inl)
+    assert abs(got_flat - want_flat) < 0.05 * want_flat, (got_flat, want_flat)
+    assert got_flat > 5 * got
+    assert np.isnan(ours(X, uv, np.arange(n) < 4))  # fewer than 5 inliers

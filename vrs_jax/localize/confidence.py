@@ -12,7 +12,12 @@ Pure numpy, batched over queries, after the jitted pipeline (nothing here change
   image, the first and the final (guided) pass disagreeing by more than a fraction of the
   scene's scale or a few degrees, or a guided pass that found far fewer inliers than the first
   (the guided pass renders or projects the map at the estimated pose and re-matches near
-  the projections: a wrong pose finds little there);
+  the projections: a wrong pose finds little there), or a camera centre that the first
+  pass's inliers leave undetermined (its standard deviation with the focal length free,
+  ``LocalizeResult.centre_std_first``, above a fraction of the scene's scale: inliers all
+  far away, at one depth, cannot tell a step along the optical axis from a zoom, and a
+  guided pass at such a pose finds the far points again wherever the camera is on that
+  axis);
 - localized: all tests pass.
 
 Each test maps its quantity to a score in [0, 1] that is 0.5 exactly at its threshold,
@@ -42,7 +47,8 @@ LOCALIZED_AT = 0.5  # confidence at and above which the verdict is "localized"
 
 # The LocalizeResult fields the rule reads (numpy, [N] or [N, 3(, 3)]).
 FIELDS = ("success", "fallback", "n_inliers", "n_matches", "n_inliers_first",
-          "n_inliers_guided", "R", "t", "R_first", "t_first", "inlier_coverage")
+          "n_inliers_guided", "R", "t", "R_first", "t_first", "inlier_coverage",
+          "centre_std_first")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,10 +116,21 @@ class ConfidenceConfig:
     # measured below, 26 of 63 matches). The wrong fox poses of issue 21 (2.3 scene radii
     # off) had 28-30.
     min_inliers: int = 30
+    # LocalizeResult.centre_std_first (the camera centre's standard deviation from the first
+    # pass's inliers, focal length free) as a fraction of the scene scale above which the
+    # pose is uncertain: 0.05, the error that makes a pose wrong here (5% of the scale), so
+    # a pose whose own inliers allow that error at one standard deviation is not reported
+    # as localized. On the phone walk's render-mode first passes (a map built on this
+    # commit's parent, every 10th frame a query) the five poses 7-30% off along the optical
+    # axis had 6.5-22%; 7 of the 19 right ones (0.3-4.5% off, by luck: their inliers lie
+    # kilometres away) also exceed it, the rest had 0.2-4.2%. A NaN (no first-pass inliers,
+    # results from before the field) scores 1: the test does not apply.
+    max_centre_std: float = 0.05
 
     def __post_init__(self):
         for f in ("min_inlier_ratio", "min_coverage", "max_pass_shift",
-                  "max_pass_rotation_deg", "min_guided_ratio", "min_inliers"):
+                  "max_pass_rotation_deg", "min_guided_ratio", "min_inliers",
+                  "max_centre_std"):
             if not getattr(self, f) > 0:
                 raise VrsError(f"ConfidenceConfig.{f} must be > 0, got {getattr(self, f)}")
         for f in ("min_inlier_ratio", "min_coverage", "min_guided_ratio"):
@@ -141,7 +158,7 @@ def result_fields(results: Sequence) -> dict[str, np.ndarray]:
            "n_inliers_guided": np.full(n, -1, np.int64),
            "R": np.tile(np.eye(3), (n, 1, 1)), "t": np.zeros((n, 3)),
            "R_first": np.tile(np.eye(3), (n, 1, 1)), "t_first": np.zeros((n, 3)),
-           "inlier_coverage": np.full(n, np.nan)}
+           "inlier_coverage": np.full(n, np.nan), "centre_std_first": np.full(n, np.nan)}
     for i, r in enumerate(results):
         if r is None:
             continue
@@ -162,7 +179,8 @@ def pass_disagreement(fields: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.
 def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[str, np.ndarray]:
     """Each test's quantity [N]: inlier_ratio (inliers / matches), coverage, pass_shift (the
     passes' camera-centre distance / ``scale``), pass_rotation (degrees), guided_ratio
-    (guided-pass inliers / first-pass inliers; NaN without a guided pass), n_inliers."""
+    (guided-pass inliers / first-pass inliers; NaN without a guided pass), n_inliers,
+    centre_std (``centre_std_first`` / ``scale``; NaN where unknown)."""
     if not (np.isfinite(scale) and scale > 0):
         raise VrsError(f"pose_confidence needs a positive scene scale, got {scale}")
     n_inl = np.asarray(fields["n_inliers"], np.float64)
@@ -175,7 +193,9 @@ def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[
             "pass_shift": shift / scale, "pass_rotation": rot,
             "guided_ratio": np.where(n_guided >= 0, n_guided / np.maximum(n_first, 1.0),
                                      np.nan),
-            "n_inliers": n_inl}
+            "n_inliers": n_inl,
+            "centre_std": np.asarray(fields.get("centre_std_first", np.full(n_inl.shape, np.nan)),
+                                     np.float64) / scale}
 
 
 def has_pose(fields: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -187,7 +207,7 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
                      ) -> dict[str, np.ndarray]:
     """Each test's score [N] in [0, 1] from its quantity (:func:`evidence_quantities`): 0.5 at
     its threshold; a NaN coverage (no inliers) scores 0, a NaN guided ratio (no guided
-    pass) 1."""
+    pass) or centre std (unknown) 1."""
     def high(x, thr):  # larger is better: 0 at 0, 0.5 at thr, 1 from 1 on
         x = np.clip(x, 0.0, 1.0)
         return np.where(x < thr, 0.5 * x / thr, 0.5 + 0.5 * (x - thr) / (1.0 - thr))
@@ -209,13 +229,17 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
                                  cfg.max_pass_rotation_deg),
             "guided_ratio": np.where(np.isnan(g), 1.0,
                                      high(np.nan_to_num(g, nan=1.0), cfg.min_guided_ratio)),
-            "n_inliers": count(np.asarray(q["n_inliers"], np.float64), cfg.min_inliers)}
+            "n_inliers": count(np.asarray(q["n_inliers"], np.float64), cfg.min_inliers),
+            "centre_std": low(np.nan_to_num(np.asarray(q.get("centre_std", g * np.nan),
+                                                       np.float64), nan=0.0),
+                              cfg.max_centre_std)}
 
 
 def confidence_scores(fields: Mapping[str, np.ndarray], scale: float,
                       cfg: ConfidenceConfig) -> dict[str, np.ndarray]:
     """Each test's score [N] in [0, 1] (0.5 at its threshold; 1 where it does not apply):
-    inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio, n_inliers."""
+    inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio, n_inliers,
+    centre_std."""
     return score_quantities(evidence_quantities(fields, scale), cfg)
 
 

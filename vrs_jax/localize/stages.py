@@ -83,8 +83,15 @@ class LocalizeResult:
       in the estimated camera (0: all at one depth).
     inlier_centre_std: [] float32 standard deviation of the estimated camera centre along
       its worst-determined direction, in map units, from the Gauss-Newton information of the
-      inliers' reprojections at their own residual spread (:func:`centre_uncertainty`):
-      large when the inliers cannot fix the translation (all far away, or few).
+      inliers' reprojections at their own residual spread with the focal length left free
+      (:func:`centre_uncertainty`): large when the inliers cannot fix the translation (few,
+      or all at one depth: then moving along the optical axis looks like a zoom).
+    centre_std_first: [] float32 the same quantity from the first pass's inliers (for a
+      tracked frame, the tracking pass's): the matches made without a pose prior. The guided
+      passes keep it: a guided pass matches near the projections of the pose it starts from,
+      so at a wrong first pose the few near points it adds can be chance matches that agree
+      with that pose (measured on the phone walk), while the first pass's inliers say how
+      well the pose was fixed before it.
     """
 
     R: Array
@@ -105,6 +112,7 @@ class LocalizeResult:
     inlier_depth_spread: Array
     n_keypoints: Array
     inlier_centre_std: Array
+    centre_std_first: Array
 
 
 def failure_reason(r: LocalizeResult, min_inliers: int) -> str | None:
@@ -165,14 +173,21 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
 def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
                        inliers: Array) -> Array:
     """[] float32 standard deviation of the camera centre, worst direction, in map units,
-    implied by a pose's inliers (NaN with fewer than 4).
+    implied by a pose's inliers with the focal length free (NaN with fewer than 5).
 
-    Linearised PnP: each inlier's projection u(R, c) of its 3D point X (camera centre c,
-    x_cam = R (X - c)) has the 2 x 6 Jacobian in (rotation, centre) J = dpi/dx_cam
-    [-[x_cam]x, -R]; with a residual spread sigma (the inliers' reprojection RMS, unbiased
-    over 2n - 6 degrees of freedom, at least 0.25 px) the pose covariance is sigma^2
-    (sum J^T J)^-1, and the centre's block gives the largest standard deviation. Points far
-    away fix the rotation but hardly the centre; near, spread points fix both.
+    Linearised PnP with a zoom: each inlier's projection u(R, c, f) of its 3D point X
+    (camera centre c, x_cam = R (X - c), focal lengths scaled by e^z) has the 2 x 7 Jacobian
+    [dpi/dx_cam [-[x_cam]x, -R], u - (cx, cy)] in (rotation, centre, z); with a residual
+    spread sigma (the inliers' reprojection RMS, unbiased over 2n - 7 degrees of freedom, at
+    least 0.25 px) the covariance is sigma^2 (sum J^T J)^-1 and the centre's block gives the
+    largest standard deviation. Points far away fix the rotation but hardly the centre; and
+    points all at one depth cannot tell a step along the optical axis from a zoom, which a
+    query's intrinsics (a phone's focus and stabilisation, a K from another frame) and the
+    map's far points (depth from small triangulation angles) both leave open: only points
+    at several depths fix that step. Measured on the phone walk's render-mode first passes
+    (``docs/figures/walk_localize.json``): with the focal length fixed the wrong poses
+    (7-30% of the scale off along the optical axis) had 1.1-3.7% of the scale, less than
+    right poses; with it free 6.5-22%.
 
     Args:
       points2d: [Kq, 2] query keypoints; the 2D side of correspondence i is ``i % Kq``.
@@ -189,19 +204,20 @@ def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
     x, y, w = xc[:, 0], xc[:, 1], xc[:, 2]
     skew = jnp.stack([jnp.stack([zero, -w, y], -1), jnp.stack([w, zero, -x], -1),
                       jnp.stack([-y, x, zero], -1)], 1)  # [x_cam]x [M, 3, 3]
-    J = jnp.einsum("mab,mbc->mac", dpi, jnp.concatenate(
-        [-skew, -jnp.broadcast_to(R, skew.shape)], -1))  # [M, 2, 6]
+    proj = (xc[:, :2] / z[:, None]) * jnp.stack([fx, fy]) + K[:2, 2]
+    J = jnp.concatenate([jnp.einsum("mab,mbc->mac", dpi, jnp.concatenate(
+        [-skew, -jnp.broadcast_to(R, skew.shape)], -1)),
+        (proj - K[:2, 2])[:, :, None]], -1)  # [M, 2, 7]: rotation, centre, log focal
     wt = (inliers & (xc[:, 2] > 1e-6)).astype(jnp.float32)
     n = jnp.sum(wt)
-    proj = (xc[:, :2] / z[:, None]) * jnp.stack([fx, fy]) + K[:2, 2]
     sse = jnp.sum(wt * jnp.sum((proj - uv) ** 2, -1))
-    sigma2 = jnp.maximum(sse / jnp.maximum(2.0 * n - 6.0, 1.0), 0.25 ** 2)
+    sigma2 = jnp.maximum(sse / jnp.maximum(2.0 * n - 7.0, 1.0), 0.25 ** 2)
     info = jnp.einsum("m,mai,maj->ij", wt, J, J)
     scale = jnp.sqrt(jnp.maximum(jnp.diagonal(info), 1e-12))  # equilibrate before inverting
     cov = jnp.linalg.inv(info / scale[:, None] / scale[None, :]) / scale[:, None] / scale[None, :]
-    ev = jnp.linalg.eigvalsh(0.5 * (cov[3:, 3:] + cov[3:, 3:].T))
+    ev = jnp.linalg.eigvalsh(0.5 * (cov[3:6, 3:6] + cov[3:6, 3:6].T))
     std = jnp.sqrt(sigma2 * jnp.maximum(ev[-1], 0.0))
-    return jnp.where(n >= 4, std, jnp.nan).astype(jnp.float32)
+    return jnp.where(n >= 5, std, jnp.nan).astype(jnp.float32)
 
 
 def reference_centers(m: Map, ref: Array) -> Array:
@@ -339,6 +355,7 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     ref = s["idx"][jnp.arange(s["X"].shape[0]) // kq]
     cov, ang, spread = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, R, t, s["X"],
                                        reference_centers(m, ref), pose.inliers)
+    std = centre_uncertainty(q.points2d, q.K, R, t, s["X"], pose.inliers)
     res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
                          R_first=R, t_first=t, n_inliers_first=pose.n_inliers,
@@ -348,8 +365,7 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          inlier_coverage=cov, inlier_ray_angle_deg=ang,
                          inlier_depth_spread=spread,
                          n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
-                         inlier_centre_std=centre_uncertainty(q.points2d, q.K, R, t, s["X"],
-                                                              pose.inliers))
+                         inlier_centre_std=std, centre_std_first=std)
     return {"result": res, "inliers": pose.inliers}
 
 

@@ -170,7 +170,7 @@ def start_result(q: Query, idx: Array, R: Array, t: Array) -> LocalizeResult:
                           n_inliers_first=i32, n_inliers_guided=jnp.int32(-1), n_rendered=i32,
                           n_rendered_first=i32, inlier_coverage=nan, inlier_ray_angle_deg=nan,
                           inlier_depth_spread=nan, n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
-                          inlier_centre_std=nan)
+                          inlier_centre_std=nan, centre_std_first=nan)
 
 
 def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
@@ -196,6 +196,7 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
     ok = jnp.any(inl)  # the refined pose was kept (success with inliers)
     res = res.replace(success=ok, fallback=~ok, R_first=res.R, t_first=res.t,
                       n_inliers_first=res.n_inliers, n_inliers_guided=jnp.int32(-1),
+                      centre_std_first=jnp.where(ok, res.inlier_centre_std, jnp.nan),
                       n_rendered_first=res.n_rendered)
     for _ in range(cfg.track.refine_passes):  # the same patches, the guided pass's gates
         res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
@@ -282,6 +283,7 @@ class TrackResult:
     inlier_depth_spread: float
     n_keypoints: int
     inlier_centre_std: float = float("nan")
+    centre_std_first: float = float("nan")
     tracked: bool = False
     attempted: bool = False
     rejected: str | None = None
