@@ -429,17 +429,20 @@ def test_results_carry_the_inlier_geometry(loaded):
             assert float(getattr(r, f)) == pytest.approx(float(getattr(rt, f)), rel=1e-4), f
 
 
-def _centre_std_opencv(K, R, t, X, uv, sigma):
+def _centre_std_opencv(K, R, t, X, uv, sigma, focal_std):
     """Reference for centre_uncertainty: OpenCV's projection Jacobian in (rvec, tvec) and in
-    the focal lengths (a zoom: fx d/dfx + fy d/dfy), the covariance sigma^2 (J^T J)^-1
-    pushed through c = -R(rvec)^T t by finite differences."""
+    the focal lengths (a zoom: fx d/dfx + fy d/dfy), the covariance with the zoom's prior
+    (J^T J / sigma^2 + 1 / focal_std^2 on the zoom)^-1 pushed through c = -R(rvec)^T t by
+    finite differences."""
     import cv2
 
     rvec, _ = cv2.Rodrigues(R.astype(np.float64))
     _, jac = cv2.projectPoints(X.astype(np.float64), rvec, t.astype(np.float64),
                                K.astype(np.float64), None)
     J = np.concatenate([jac[:, :6], K[0, 0] * jac[:, 6:7] + K[1, 1] * jac[:, 7:8]], 1)
-    cov = sigma ** 2 * np.linalg.inv(J.T @ J)
+    prior = np.zeros((7, 7))
+    prior[6, 6] = 1.0 / focal_std ** 2
+    cov = np.linalg.inv(J.T @ J / sigma ** 2 + prior)
 
     def centre(p):
         Rm, _ = cv2.Rodrigues(p[:3])
@@ -481,19 +484,21 @@ def test_centre_uncertainty_matches_opencv_and_grows_with_depth():
     inl[:5] = False
     uv[:5] += 40.0  # outliers, not counted
 
-    def ours(Xw, uvq, mask):
+    def ours(Xw, uvq, mask, focal_std=0.003):
         f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
         return float(centre_uncertainty(f32(uvq), f32(K), f32(R), f32(t), f32(Xw),
-                                        jnp.asarray(mask)))
+                                        jnp.asarray(mask), focal_std))
 
     sigma = np.sqrt(np.sum(noise[inl] ** 2) / (2 * inl.sum() - 7))
-    want = _centre_std_opencv(K, R, t, X[inl], uv[inl], sigma)
+    want = _centre_std_opencv(K, R, t, X[inl], uv[inl], sigma, 0.003)
     got = ours(X, uv, inl)
     assert abs(got - want) < 0.02 * want, (got, want)
     assert 18 * got < ours(world(20.0 * depth), uv, inl) < 22 * got
     one_depth = world(rng.uniform(3.9, 4.1, n))  # the same image points, one depth
-    want_flat = _centre_std_opencv(K, R, t, one_depth[inl], uv[inl], sigma)
-    got_flat = ours(one_depth, uv, inl)
+    want_flat = _centre_std_opencv(K, R, t, one_depth[inl], uv[inl], sigma, 0.03)
+    got_flat = ours(one_depth, uv, inl, 0.03)
     assert abs(got_flat - want_flat) < 0.05 * want_flat, (got_flat, want_flat)
-    assert got_flat > 5 * got
+    assert got_flat > 5 * ours(X, uv, inl, 0.03)
+    # a known focal length (a tight prior) fixes the step along the axis
+    assert ours(one_depth, uv, inl, 1e-6) < 0.5 * got_flat
     assert np.isnan(ours(X, uv, np.arange(n) < 4))  # fewer than 5 inliers

@@ -117,9 +117,10 @@ def test_measured_real_and_wrong_poses():
 def test_first_pass_centre_std_flags_far_field_poses():
     """The phone walk's render-mode poses (measured, see ConfidenceConfig.max_centre_std):
     frame 101 came out 11% of the scale off along the optical axis on 42 first-pass inliers
-    all kilometres away, and its guided pass "confirmed" it with 125; every other test passes
-    it, the first pass's centre std (6.5% of the scale) flags it. A right pose whose first
-    pass had near points (frame 111: 0.23%) stays localized, as does a result without the
+    all a hundred scene units away, and its guided pass "confirmed" it with 125; every other
+    test passes it, the first pass's centre std (6.5% of the scale) flags it. A right pose
+    whose first pass had near points (frame 111: 0.23%) stays localized, as does a result without
+    the
     quantity (NaN: the test does not apply); the threshold is the config's."""
     scale = 3.2
     f = _fields(3, n_inliers=np.array([125, 143, 125]), n_matches=np.array([142, 166, 142]),
@@ -130,7 +131,7 @@ def test_first_pass_centre_std_flags_far_field_poses():
     conf, verdict = pose_confidence(f, scale, CFG)
     assert list(verdict) == ["uncertain", "localized", "localized"]
     assert weakest_test(f, scale, CFG)[0] == "centre_std"
-    assert conf[0] == pytest.approx(0.5 * 0.05 / 0.0654)
+    assert conf[0] == pytest.approx(0.5 * 0.04 / 0.0654)
     loose = dataclasses.replace(CFG, max_centre_std=0.1)
     assert pose_confidence(f, scale, loose)[1][0] == "localized"
     assert result_fields([None])["centre_std_first"].shape == (1,)

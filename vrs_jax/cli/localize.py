@@ -311,7 +311,8 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
     """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
     inliers' geometry (coverage of the query image, median ray angle with the map views,
     relative depth spread, the camera centre's standard deviation from the final and from
-    the first pass's inliers, in map units; None without inliers), the pose ``confidence`` in [0, 1] and its
+    the first pass's inliers, in map units; None without inliers), the pose ``confidence``
+    in [0, 1] and its
     ``verdict`` (localized / uncertain / failed; localize.confidence) and why it has no PnP
     pose (``error``: None when localized; localize.failure_reason with the PnP config's
     ``min_inliers``)."""

@@ -83,8 +83,9 @@ class LocalizeResult:
       in the estimated camera (0: all at one depth).
     inlier_centre_std: [] float32 standard deviation of the estimated camera centre along
       its worst-determined direction, in map units, from the Gauss-Newton information of the
-      inliers' reprojections at their own residual spread with the focal length left free
-      (:func:`centre_uncertainty`): large when the inliers cannot fix the translation (few,
+      inliers' reprojections at their own residual spread with the focal length known only
+      to ``cfg.confidence.focal_std`` (:func:`centre_uncertainty`): large when the inliers
+      cannot fix the translation (few,
       or all at one depth: then moving along the optical axis looks like a zoom).
     centre_std_first: [] float32 the same quantity from the first pass's inliers (for a
       tracked frame, the tracking pass's): the matches made without a pose prior. The guided
@@ -171,15 +172,17 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
 
 
 def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
-                       inliers: Array) -> Array:
+                       inliers: Array, focal_std: float) -> Array:
     """[] float32 standard deviation of the camera centre, worst direction, in map units,
-    implied by a pose's inliers with the focal length free (NaN with fewer than 5).
+    implied by a pose's inliers with the focal length known only to a relative standard
+    deviation ``focal_std`` (NaN with fewer than 5 inliers).
 
     Linearised PnP with a zoom: each inlier's projection u(R, c, f) of its 3D point X
     (camera centre c, x_cam = R (X - c), focal lengths scaled by e^z) has the 2 x 7 Jacobian
     [dpi/dx_cam [-[x_cam]x, -R], u - (cx, cy)] in (rotation, centre, z); with a residual
     spread sigma (the inliers' reprojection RMS, unbiased over 2n - 7 degrees of freedom, at
-    least 0.25 px) the covariance is sigma^2 (sum J^T J)^-1 and the centre's block gives the
+    least 0.25 px) and the prior z ~ N(0, focal_std^2) the covariance is
+    sigma^2 (sum J^T J + sigma^2 / focal_std^2 e_z e_z^T)^-1 and the centre's block gives the
     largest standard deviation. Points far away fix the rotation but hardly the centre; and
     points all at one depth cannot tell a step along the optical axis from a zoom, which a
     query's intrinsics (a phone's focus and stabilisation, a K from another frame) and the
@@ -187,7 +190,9 @@ def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
     at several depths fix that step. Measured on the phone walk's render-mode first passes
     (``docs/figures/walk_localize.json``): with the focal length fixed the wrong poses
     (7-30% of the scale off along the optical axis) had 1.1-3.7% of the scale, less than
-    right poses; with it free 6.5-22%.
+    right poses; with it free 6.5-22%. Fully free, it also made the right poses of an
+    object seen from 0.6 m (DTU scan24, calibrated) look undetermined (2-10%), hence the
+    prior (``ConfidenceConfig.focal_std``).
 
     Args:
       points2d: [Kq, 2] query keypoints; the 2D side of correspondence i is ``i % Kq``.
@@ -213,6 +218,7 @@ def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
     sse = jnp.sum(wt * jnp.sum((proj - uv) ** 2, -1))
     sigma2 = jnp.maximum(sse / jnp.maximum(2.0 * n - 7.0, 1.0), 0.25 ** 2)
     info = jnp.einsum("m,mai,maj->ij", wt, J, J)
+    info = info.at[6, 6].add(sigma2 / jnp.float32(focal_std) ** 2)  # the focal-length prior
     scale = jnp.sqrt(jnp.maximum(jnp.diagonal(info), 1e-12))  # equilibrate before inverting
     cov = jnp.linalg.inv(info / scale[:, None] / scale[None, :]) / scale[:, None] / scale[None, :]
     ev = jnp.linalg.eigvalsh(0.5 * (cov[3:6, 3:6] + cov[3:6, 3:6].T))
@@ -355,7 +361,8 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     ref = s["idx"][jnp.arange(s["X"].shape[0]) // kq]
     cov, ang, spread = inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, R, t, s["X"],
                                        reference_centers(m, ref), pose.inliers)
-    std = centre_uncertainty(q.points2d, q.K, R, t, s["X"], pose.inliers)
+    std = centre_uncertainty(q.points2d, q.K, R, t, s["X"], pose.inliers,
+                             cfg.confidence.focal_std)
     res = LocalizeResult(R=R, t=t, success=ok, fallback=~ok, n_inliers=pose.n_inliers,
                          n_matches=jnp.sum(s["ok"]).astype(jnp.int32), retrieved=s["idx"],
                          R_first=R, t_first=t, n_inliers_first=pose.n_inliers,
@@ -507,7 +514,8 @@ def guided_refine(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, res: Locali
                        inlier_ray_angle_deg=pick(geo[1], res.inlier_ray_angle_deg),
                        inlier_depth_spread=pick(geo[2], res.inlier_depth_spread),
                        inlier_centre_std=pick(centre_uncertainty(
-                           q.points2d, q.K, pose.R, pose.t, Xq, pose.inliers),
+                           q.points2d, q.K, pose.R, pose.t, Xq, pose.inliers,
+                           cfg.confidence.focal_std),
                            res.inlier_centre_std)
                        ), pose.inliers & better
 
