@@ -11,7 +11,7 @@ import pytest
 from vrs_jax import geometry, localize, maps
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
-from vrs_jax.localize import track
+from vrs_jax.localize import stages, track
 from vrs_jax.localize.localizer import Localizer
 
 # Render mode with one guided pass localizes tiny_map's queries within 5 cm
@@ -176,3 +176,26 @@ def test_references_in_view_of_a_reference_pose_include_it(tiny_map):
                                45.0)
     s0 = track.reference_scores(m, m.egm.K[0], m.egm.R[0], m.egm.t[0], size, 45.0)
     assert int(s[0]) < int(s0[0])
+
+
+def test_tracked_pose_needs_references_its_appearance_retrieves(loc, stream):
+    """A tracked pose is kept only if the references nearest it (those its pass used) include
+    one the frame's global descriptor retrieves: a frame's own nearest references pass, a set
+    disjoint from its retrieval is rejected with a reason, 0 switches the test off."""
+    import dataclasses
+
+    m, cfg = loc.map, loc.cfg
+    q = loc.prepare(stream.image_paths[0], stream.K[0])
+    own = np.asarray(stages.retrieval(m, q, cfg, {})["idx"])
+    others = np.setdiff1d(np.arange(m.egm.num_images), own)[:len(own)]
+    assert track.appearance_agrees(m, q, own, cfg)
+    assert not track.appearance_agrees(m, q, others, cfg)
+    off = dataclasses.replace(cfg, track=dataclasses.replace(cfg.track,
+                                                             min_retrieval_overlap=0))
+    assert track.appearance_agrees(m, q, others, off)
+    r = loc.localize_query(q)
+    eye, zero = np.asarray(r.R, np.float64), np.asarray(r.t, np.float64)
+    assert track.rejection(r, "localized", eye, zero, 1.0, cfg, agrees=True) is None
+    assert "appearance" in track.rejection(r, "localized", eye, zero, 1.0, cfg, agrees=False)
+    with pytest.raises(VrsError):
+        localize.TrackConfig(min_retrieval_overlap=-1)

@@ -66,6 +66,13 @@ class TrackConfig:
     # pose matches many points near their projections, a wrong prediction few; 20 is above
     # PnP's 12 (a chance pose's inliers) with a margin.
     min_inliers: int = 20
+    # A tracked pose is kept only if the references its pass used (those nearest the
+    # predicted pose) share at least this many images with the frame's top_k retrieved by
+    # its global descriptor, the one piece of evidence that does not come from the
+    # prediction: the tracking pass matches near the projections of the predicted pose, so
+    # a wrong prediction can gather 30-40 inliers of its own (fox in capture order, 52-181%
+    # of the scale off). 0: not checked.
+    min_retrieval_overlap: int = 1
     # A tracked pose farther from its prediction than this fraction of the scene scale, or
     # turned more than max_jump_deg from it, is relocalized: the search radius lets the pose
     # move only as far as the projections move within radius_px, so a larger jump came from
@@ -86,9 +93,9 @@ class TrackConfig:
 
     def __post_init__(self):
         if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1
-                or self.refine_passes < 0):
+                or self.refine_passes < 0 or self.min_retrieval_overlap < 0):
             raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1, "
-                           "refine_passes >= 0")
+                           "refine_passes >= 0, min_retrieval_overlap >= 0")
         if not (self.radius_px > 0 and self.max_jump > 0 and self.max_jump_deg > 0
                 and 0 < self.max_ray_angle_deg <= 180):
             raise VrsError("TrackConfig.radius_px, max_jump and max_jump_deg must be > 0, "

@@ -229,11 +229,25 @@ track_step._cache_size = _track_jit._cache_size  # compilations so far (tests)
 # ----------------------------------------------------------------------------- acceptance
 
 
+def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -> bool:
+    """Whether the references a tracking pass used (``used`` [k] int, those nearest its
+    predicted pose) share at least ``cfg.track.min_retrieval_overlap`` images with the
+    query's own top_k by global descriptor (the first pass's retrieval: what the frame looks
+    like, independent of any pose)."""
+    need = cfg.track.min_retrieval_overlap
+    if need <= 0:
+        return True
+    idx = np.asarray(st.retrieval(m, q, cfg, {})["idx"])
+    return len(set(idx.tolist()) & set(np.asarray(used).tolist())) >= need
+
+
 def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.ndarray,
-              scale: float, cfg: LocalizeConfig) -> str | None:
+              scale: float, cfg: LocalizeConfig, agrees: bool = True) -> str | None:
     """Why a tracked pose is not kept (None: kept): no pose, a verdict other than
-    "localized", fewer than ``track.min_inliers`` inliers, or a jump from the prediction
-    beyond ``track.max_jump`` (fraction of the scene ``scale``) or ``track.max_jump_deg``."""
+    "localized", fewer than ``track.min_inliers`` inliers, references that the frame's
+    appearance does not retrieve (``agrees`` False: :func:`appearance_agrees`), or a jump
+    from the prediction beyond ``track.max_jump`` (fraction of the scene ``scale``) or
+    ``track.max_jump_deg``."""
     tc = cfg.track
     if not bool(r.success):
         return "the tracking pass found no pose"
@@ -241,6 +255,9 @@ def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.nd
         return f"confidence verdict {verdict}"
     if int(r.n_inliers) < tc.min_inliers:
         return f"{int(r.n_inliers)} inliers, fewer than {tc.min_inliers}"
+    if not agrees:
+        return ("none of the map images nearest the tracked pose is among those the frame's "
+                "appearance retrieves")
     dt, dr = jump(r.R, r.t, R_pred, t_pred)
     if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
         return (f"jumped {dt / scale:.3f} of the scene scale and {dr:.1f} deg from the "
@@ -430,7 +447,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
             size = np.array([gray.shape[1], gray.shape[0]], np.float32)
             r = jax.device_get(step(m, q, pred[0], pred[1], size, cfg))
             conf, verdict = confidence_of(r, scale, cfg)
-            reason = rejection(r, verdict, pred[0], pred[1], scale, cfg)
+            reason = rejection(r, verdict, pred[0], pred[1], scale, cfg,
+                               appearance_agrees(m, q, r.retrieved, cfg))
         if pred is not None and reason is None:
             extra.update(tracked=True)
         else:
