@@ -119,9 +119,8 @@ def test_first_pass_centre_std_flags_far_field_poses():
     frame 101 came out 11% of the scale off along the optical axis on 42 first-pass inliers
     all a hundred scene units away, and its guided pass "confirmed" it with 125; every other
     test passes it, the first pass's centre std (6.5% of the scale) flags it. A right pose
-    whose first pass had near points (frame 111: 0.23%) stays localized, as does a result without
-    the
-    quantity (NaN: the test does not apply); the threshold is the config's."""
+    whose first pass had near points (frame 111: 0.23%) stays localized, as does a result
+    without the quantity (NaN: the test does not apply); the threshold is the config's."""
     scale = 3.2
     f = _fields(3, n_inliers=np.array([125, 143, 125]), n_matches=np.array([142, 166, 142]),
                 n_inliers_first=np.array([42, 31, 42]),
