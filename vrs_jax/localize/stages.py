@@ -85,8 +85,8 @@ class LocalizeResult:
       its worst-determined direction, in map units, from the Gauss-Newton information of the
       inliers' reprojections at their own residual spread with the focal length known only
       to ``cfg.confidence.focal_std`` (:func:`centre_uncertainty`): large when the inliers
-      cannot fix the translation (few,
-      or all at one depth: then moving along the optical axis looks like a zoom).
+      cannot fix the translation (few, or all at one depth: then moving along the optical
+      axis looks like a zoom).
     centre_std_first: [] float32 the same quantity from the first pass's inliers (for a
       tracked frame, the tracking pass's): the matches made without a pose prior. The guided
       passes keep it: a guided pass matches near the projections of the pose it starts from,
@@ -188,11 +188,11 @@ def centre_uncertainty(points2d: Array, K: Array, R: Array, t: Array, X: Array,
     query's intrinsics (a phone's focus and stabilisation, a K from another frame) and the
     map's far points (depth from small triangulation angles) both leave open: only points
     at several depths fix that step. Measured on the phone walk's render-mode first passes
-    (``docs/figures/walk_localize.json``): with the focal length fixed the wrong poses
-    (7-30% of the scale off along the optical axis) had 1.1-3.7% of the scale, less than
-    right poses; with it free 6.5-22%. Fully free, it also made the right poses of an
-    object seen from 0.6 m (DTU scan24, calibrated) look undetermined (2-10%), hence the
-    prior (``ConfidenceConfig.focal_std``).
+    (``docs/figures/localize_walk_fox_scan24.json``): with the focal length fixed the wrong
+    poses (7-31% of the scale off along the optical axis) had 1.1-3.7% of the scale, less
+    than many right poses; with it free 6.5-22%, with the 0.3% prior 4.7-8.7%. Fully free,
+    it also made the right poses of an object seen from 0.6 m (DTU scan24, calibrated) look
+    undetermined (2-10%), hence the prior (``ConfidenceConfig.focal_std``).
 
     Args:
       points2d: [Kq, 2] query keypoints; the 2D side of correspondence i is ``i % Kq``.
