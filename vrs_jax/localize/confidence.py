@@ -15,10 +15,9 @@ Pure numpy, batched over queries, after the jitted pipeline (nothing here change
   the projections: a wrong pose finds little there), or a camera centre that the first
   pass's inliers leave undetermined (its standard deviation with the focal length known
   to ``focal_std``, ``LocalizeResult.centre_std_first``, above a fraction of the scene's
-  scale: inliers all
-  far away, at one depth, cannot tell a step along the optical axis from a zoom, and a
-  guided pass at such a pose finds the far points again wherever the camera is on that
-  axis);
+  scale: inliers all far away, at one depth, cannot tell a step along the optical axis
+  from a zoom, and a guided pass at such a pose finds the far points again wherever the
+  camera is on that axis);
 - localized: all tests pass.
 
 Each test maps its quantity to a score in [0, 1] that is 0.5 exactly at its threshold,
@@ -125,8 +124,8 @@ class ConfidenceConfig:
     # (render mode, a map built on 7356f39, every 10th frame a query;
     # docs/figures/localize_walk_fox_scan24.json) the five poses 7-31% off along the optical
     # axis had 4.7-8.7% (the 4.7% one from 12 first-pass inliers), hence 0.04. Right poses
-    # stay below 2.3% in real-patch mode on the
-    # walk and in both modes on fox and scan24; on the walk 7 of the 19 right render poses
+    # stay below 2.3% in real-patch mode on the walk and in both modes on fox and scan24;
+    # on the walk 7 of the 19 right render poses
     # (0.3-4.6% off, right by luck: their first-pass inliers lie a hundred scene units away)
     # exceed it too. A NaN (no first-pass inliers, results from before the field) scores 1:
     # the test does not apply.
