@@ -119,6 +119,29 @@ def test_loss_is_point_one_coarse_plus_fine():
     np.testing.assert_allclose(float(loss), 0.25 + 0.1 * 1.0)
 
 
+def test_window_mass_against_numpy_overlaps():
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.uniform(1.0, 9.0, (5, 9)), axis=-1)
+    w = rng.uniform(0.0, 0.2, (5, 8))
+    lo, hi = rng.uniform(1.0, 5.0, 5), rng.uniform(5.0, 9.0, 5)
+    want = [sum(w[r, i] * max(0.0, min(t[r, i + 1], hi[r]) - max(t[r, i], lo[r]))
+                / (t[r, i + 1] - t[r, i]) for i in range(8)) for r in range(5)]
+    got = model.window_mass(jnp.asarray(t), jnp.asarray(w), jnp.asarray(lo), jnp.asarray(hi))
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
+
+
+def test_depth_loss_counts_the_weight_outside_the_window_of_rays_with_depth():
+    t = jnp.broadcast_to(jnp.linspace(0.0, 10.0, 11), (3, 11))
+    w = jnp.zeros((3, 10)).at[:, 4].set(1.0)  # all weight in [4, 5]
+    level = {"t_vals": t, "weights": w}
+    # ray 0: window [3.6, 5.4] holds it all; ray 1: window [8, 12] none; ray 2: no depth
+    depth = jnp.array([4.5, 10.0, 0.0])
+    np.testing.assert_allclose(float(model.depth_loss([level], depth, 0.2)), 0.5, rtol=1e-6)
+    np.testing.assert_allclose(float(model.depth_loss([level, level], depth[:1], 0.2)), 0.0,
+                               atol=1e-7)
+    assert float(model.depth_loss([level], jnp.zeros(3), 0.2)) == 0.0
+
+
 def test_flop_count_matches_xla_cost_analysis():
     cfg = get_config("test", use_viewdirs=False)
     params = model.init_params(jax.random.key(0), cfg)

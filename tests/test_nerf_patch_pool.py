@@ -36,7 +36,9 @@ def test_pool_rays_and_targets_match_the_real_patches(small_synthetic_scene):
     cfg = PatchConfig(size=9)
     near, far = np.full(3, 0.1), np.full(3, 8.0)
     pool = patch_pool(refs, kps, masks, cfg, near, far, max_rays=10**7)
-    assert set(pool) == {"origins", "directions", "radii", "near", "far", "rgb", "image"}
+    assert set(pool) == {"origins", "directions", "radii", "near", "far", "rgb", "depth",
+                         "image"}
+    assert not pool["depth"].any()  # no depths given
     # image 0's rays: project back onto its patch grid, and carry the real patch colours
     sel = pool["image"] == 0
     pos, _ = patch_grid(kps[0][masks[0]], cfg)
@@ -78,3 +80,31 @@ def test_sample_rays_draws_the_pool_fraction(small_synthetic_scene):
         assert hit.size >= 1  # the first half comes from the keypoint patches
         assert np.isclose(pool["radii"][hit[0]], np.asarray(b["radii"])[k])
         np.testing.assert_allclose(np.asarray(b["rgb"])[k], pool["rgb"][hit[0]], atol=1e-6)
+
+
+def test_pool_carries_each_keypoints_depth_to_its_samples(small_synthetic_scene):
+    refs, kps, masks = _refs_with_keypoints(small_synthetic_scene)
+    cfg = PatchConfig(size=9)
+    near, far = np.full(3, 0.1), np.full(3, 8.0)
+    depths = np.where(masks, 1.0 + np.arange(masks.shape[1])[None, :], 0.0)
+    depths[1, 0] = -1.0  # a keypoint without a 3D point: no depth (0)
+    pool = patch_pool(refs, kps, masks, cfg, near, far, max_rays=10**7, depths=depths)
+    pos, _ = patch_grid(kps[0][masks[0]], cfg)
+    pos = np.asarray(pos).reshape(-1, 2)
+    img = read_image(refs.image_paths[0])
+    h, w = img.shape[:2]
+    inside = (pos[:, 0] >= 0) & (pos[:, 0] <= w) & (pos[:, 1] >= 0) & (pos[:, 1] <= h)
+    want = np.repeat(depths[0][masks[0]], 81)[inside]
+    np.testing.assert_array_equal(pool["depth"][pool["image"] == 0], want)
+    assert np.all(pool["depth"][pool["image"] == 1][:81] == 0.0)
+    # the bank hands them to the pool rays of a batch, and 0 to pixel rays
+    images = data_lib.load_images(refs)
+    bank = data_lib.build_bank(refs, near, far, images, pool, pool_fraction=0.5)
+    b = data_lib.sample_rays(bank, jnp.arange(3, dtype=jnp.int32), jnp.int32(3),
+                             jax.random.key(1), 64)
+    d, o = np.asarray(b["directions"])[:32], np.asarray(b["origins"])[:32]
+    for k in range(32):
+        hit = np.flatnonzero(np.all(np.isclose(pool["directions"], d[k], atol=1e-6), axis=1)
+                             & np.all(np.isclose(pool["origins"], o[k], atol=1e-6), axis=1))
+        assert float(b["depth"][k]) in set(pool["depth"][hit].tolist())
+    assert not np.asarray(b["depth"])[32:].any()

@@ -16,12 +16,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from vrs_jax import configio, fileio
 from vrs_jax.data.scene import Scene
 from vrs_jax.egm import build as egm_build
 from vrs_jax.errors import VrsError
+from vrs_jax.features import rays as rays_mod
 from vrs_jax.maps import map as map_io
 from vrs_jax.maps.config import MapConfig
 from vrs_jax.maps.map import Map, MapSource
@@ -116,6 +118,14 @@ def load_partial(folder: Path) -> Map:
     return map_io.load_map(folder, descriptors=True, require_ilm=False)
 
 
+def keypoint_depths(egm) -> np.ndarray:
+    """[N, K_max] z-depth of each map keypoint's 3D point in its reference camera, 0 where
+    the keypoint links none (the NeRF's depth-loss targets)."""
+    z = jax.vmap(rays_mod.keypoint_depths, in_axes=(None, 0, 0, 0))(
+        egm.points3d, egm.point_idx, egm.R, egm.t)
+    return np.where(np.asarray(egm.point_idx) >= 0, np.asarray(z), 0.0)
+
+
 def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool = True,
               minutes: float | None = None, source_options: dict[str, Any] | None = None,
               log: Callable[[str], None] | None = None, train_nerf: bool = True,
@@ -173,7 +183,7 @@ def build_map(scene: Scene, out_dir: str | Path, cfg: MapConfig, progress: bool 
         refs = scene.references()
         prep = nerf_train.prepare(refs, ncfg, points3d=np.asarray(m.egm.points3d),
                                   patch_keypoints=(m.egm.keypoints, m.egm.kp_mask,
-                                                   cfg.features.patches))
+                                                   cfg.features.patches, keypoint_depths(m.egm)))
         res = nerf_train.train(prep, out / "nerf", minutes=minutes, progress=progress)
         if not primary:
             return out  # the map is process 0's to write

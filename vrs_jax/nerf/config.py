@@ -51,6 +51,7 @@ _FLOAT_RANGES = {
     "coarse_loss_mult": (0.0, _INF, False, False), "norm_radius": (0.0, _INF, True, False),
     "near_far_margin": (0.0, 1.0, False, True), "patch_ray_fraction": (0.0, 1.0, False, False),
     "cluster_overlap": (0.0, _INF, False, False),
+    "depth_loss_mult": (0.0, _INF, False, False), "depth_loss_margin": (0.0, 1.0, True, True),
 }
 
 
@@ -133,7 +134,15 @@ class NerfConfig:
     # 0.5: the map's renders are only ever patches, but full views stay usable for
     # inspection and held-out PSNR. Measured: no gain on the synthetic room (README).
     patch_ray_fraction: float = 0.5
-    patch_pool_max_rays: int = 4_000_000  # cap on the pool (memory: 48 B per ray)
+    patch_pool_max_rays: int = 4_000_000  # cap on the pool (memory: 52 B per ray)
+    # Depth supervision of the keypoint-patch rays by the map's own 3D points: the loss adds
+    # depth_loss_mult x the mean, over pool rays of 3D-linked keypoints and over both
+    # levels, of the ray's weight outside +-depth_loss_margin (relative) around the
+    # keypoint's point depth (model.depth_loss). The localizer renders patches inside that
+    # window only (LocalizeConfig.depth_guided, depth_margin 0.2), so the field must put
+    # their surface there. 0: colour loss only (the paper).
+    depth_loss_mult: float = 0.0
+    depth_loss_margin: float = 0.2
     cluster_overlap: float = 0.2  # image also joins cluster b if |x-c_b| <= 1.2 |x-c_own|
     # How the reference cameras are divided (nerf/clusters.py): "kmeans" (K-means++ on the
     # camera centres, the paper's) or "grid" (a uniform grid of n_clusters equal cells over
@@ -151,7 +160,8 @@ class NerfConfig:
 
     # Fields added since maps were first written, with the value an earlier map meant
     # (configio.from_dict completes a file that lacks them).
-    ADDED_FIELDS: ClassVar[dict[str, Any]] = {"contraction": False}
+    ADDED_FIELDS: ClassVar[dict[str, Any]] = {"contraction": False, "depth_loss_mult": 0.0,
+                                            "depth_loss_margin": 0.2}
 
     @property
     def num_levels(self) -> int:

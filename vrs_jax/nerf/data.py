@@ -247,6 +247,7 @@ class RayBank:
     pool_directions: Array | None = None
     pool_radii: Array | None = None
     pool_rgb: Array | None = None
+    pool_depth: Array | None = None  # [M] keypoint point depth (t units), 0: none
     pool_start: Array | None = None
     pool_count: Array | None = None
     use_dist: bool = struct.field(pytree_node=False, default=False)
@@ -283,6 +284,8 @@ def build_bank(scene: Scene, near: np.ndarray, far: np.ndarray,
         extra = dict(pool_origins=f32(pool["origins"][order]),
                      pool_directions=f32(pool["directions"][order]),
                      pool_radii=f32(pool["radii"][order]), pool_rgb=f32(pool["rgb"][order]),
+                     pool_depth=f32(pool["depth"][order] if "depth" in pool
+                                    else np.zeros(len(order))),
                      pool_start=jnp.asarray(start), pool_count=jnp.asarray(count),
                      pool_fraction=float(pool_fraction))
     return RayBank(images=jnp.asarray(stack), K=f32(scene.K), R=f32(scene.R), t=f32(scene.t),
@@ -301,7 +304,8 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
       batch_size: B (static).
     Returns:
       dict(origins [B,3], directions [B,3], radii [B], near [B], far [B], rgb [B,3],
-      image [B] int32, pixel [B, 2] int32 (row i, column j)).
+      image [B] int32, pixel [B, 2] int32 (row i, column j), depth [B]: the keypoint's
+      point depth for patch-pool rays of a 3D-linked keypoint, else 0).
     """
     k1, k2, k3 = jax.random.split(key, 3)
     slot = jax.random.randint(k1, (batch_size,), 0, jnp.maximum(count, 1))
@@ -317,7 +321,7 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
                                bank.dist[img] if bank.use_dist else None)
     out = {"origins": o[:, 0], "directions": d[:, 0], "radii": bank.radii[img],
            "near": bank.near[img], "far": bank.far[img], "rgb": rgb, "image": img,
-           "pixel": jnp.stack([i, j], axis=-1)}
+           "pixel": jnp.stack([i, j], axis=-1), "depth": jnp.zeros((batch_size,))}
     n_pool = int(round(bank.pool_fraction * batch_size)) if bank.pool_count is not None else 0
     if n_pool > 0:
         # the first n_pool rays come from the keypoint-patch pool of the same images (an image
@@ -332,8 +336,9 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
         for name, src in (("origins", bank.pool_origins), ("directions", bank.pool_directions),
                           ("rgb", bank.pool_rgb)):
             out[name] = out[name].at[:n_pool].set(jnp.where(has, src[pick], out[name][:n_pool]))
-        out["radii"] = out["radii"].at[:n_pool].set(
-            jnp.where(has[:, 0], bank.pool_radii[pick], out["radii"][:n_pool]))
+        for name, src in (("radii", bank.pool_radii), ("depth", bank.pool_depth)):
+            out[name] = out[name].at[:n_pool].set(jnp.where(has[:, 0], src[pick],
+                                                            out[name][:n_pool]))
     return out
 
 

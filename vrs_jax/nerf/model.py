@@ -324,19 +324,29 @@ def render_rays_narrow(field: Field, origins: Array, directions: Array, radii: A
     """
     if key is None:
         key = jax.random.key(0)
-    o, d, r = normalize_rays(field, origins, directions, radii)
     keys = jax.random.split(key, 4)
-    view_enc = _view_encoding(cfg, d)
-    t_vals, (means, covs) = mipnerf.sample_along_rays(keys[0], o, d, r, near, far, num_samples,
-                                                      randomized, lindisp=False)
-    rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r, view_enc, keys[1],
-                             randomized)
-    res = mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
+    t_vals = mipnerf.stratified_t_vals(keys[0], near, far, num_samples, randomized)
+    res = render_rays_at(field, origins, directions, radii, t_vals, keys[1], cfg, randomized)
     first = {"t_vals": t_vals, "weights": res["weights"]}
     if num_fine > 0:
         res = render_rays_resampled(field, origins, directions, radii, t_vals, res["weights"],
                                     keys[2], cfg, num_fine, randomized)
     return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"], **first}
+
+
+def render_rays_at(field: Field, origins: Array, directions: Array, radii: Array,
+                   t_vals: Array, key: Array | None, cfg: NerfConfig,
+                   randomized: bool = False) -> dict[str, Array]:
+    """One level at given intervals: the frustums between the sorted ``t_vals`` [R, S + 1]
+    evaluated and composited. origins, directions: [R, 3] world frame; radii: [R].
+    Returns dict(rgb [R, 3], depth [R], acc [R], weights [R, S])."""
+    if key is None:
+        key = jax.random.key(0)
+    o, d, r = normalize_rays(field, origins, directions, radii)
+    means, covs = mipnerf.cast_rays(t_vals, o, d, r)
+    rgb, density = _eval_mlp(field.params, cfg, means, covs, t_vals, r, _view_encoding(cfg, d),
+                             key, randomized)
+    return mipnerf.volumetric_rendering(rgb, density, t_vals, d, field.background)
 
 
 def render_rays_resampled(field: Field, origins: Array, directions: Array, radii: Array,
@@ -357,6 +367,25 @@ def render_rays_resampled(field: Field, origins: Array, directions: Array, radii
                              keys[1], randomized)
     res = mipnerf.volumetric_rendering(rgb, density, t_new, d, field.background)
     return {"rgb": res["rgb"], "depth": res["depth"], "acc": res["acc"]}
+
+
+def window_mass(t_vals: Array, weights: Array, lo: Array, hi: Array) -> Array:
+    """Rendering weight inside [lo, hi] per ray: each interval's weight times the fraction of
+    the interval inside the window. t_vals [R, S + 1], weights [R, S], lo, hi [R] -> [R]."""
+    t0, t1 = t_vals[..., :-1], t_vals[..., 1:]
+    inside = jnp.clip(jnp.minimum(t1, hi[..., None]) - jnp.maximum(t0, lo[..., None]), 0.0)
+    frac = inside / jnp.maximum(t1 - t0, 1e-10)
+    return jnp.sum(weights * frac, axis=-1)
+
+
+def depth_loss(levels: list[dict[str, Array]], depth: Array, margin: float) -> Array:
+    """Mean weight outside the window +-margin around ``depth`` [R] (t units; <= 0: no
+    depth, not counted), over the rays with a depth and over the levels -> []."""
+    has = (depth > 0).astype(jnp.float32)
+    lo, hi = depth * (1.0 - margin), depth * (1.0 + margin)
+    out = [jnp.sum((1.0 - window_mass(res["t_vals"], res["weights"], lo, hi)) * has)
+           for res in levels]
+    return sum(out) / (len(levels) * jnp.maximum(jnp.sum(has), 1.0))
 
 
 def nerf_loss(levels: list[dict[str, Array]], rgb_target: Array, cfg: NerfConfig,

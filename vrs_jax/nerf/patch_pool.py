@@ -37,7 +37,8 @@ def _patch_targets(rgb: np.ndarray, kp: np.ndarray, cfg: PatchConfig) -> np.ndar
 
 def patch_pool(refs: Scene, keypoints: np.ndarray, kp_mask: np.ndarray, cfg: PatchConfig,
                near: np.ndarray, far: np.ndarray, max_rays: int, seed: int = 0,
-               background: np.ndarray | None = None) -> dict[str, np.ndarray]:
+               background: np.ndarray | None = None, depths: np.ndarray | None = None
+               ) -> dict[str, np.ndarray]:
     """Training rays of the patches of the map keypoints of each reference image.
 
     Args:
@@ -47,18 +48,23 @@ def patch_pool(refs: Scene, keypoints: np.ndarray, kp_mask: np.ndarray, cfg: Pat
       near, far: [N] per-image sampling bounds (t = z-depth).
       max_rays: cap on the pool size (patch samples are subsampled uniformly, fixed seed).
       background: RGB that RGBA images are composited on (as for pixel rays).
+      depths: optional [N, K_max] z-depth of each keypoint's 3D point (<= 0: none), given
+        to every sample of its patch (the depth loss's window, NerfConfig.depth_loss_mult).
     Returns:
       dict(origins [M, 3], directions [M, 3], radii [M], near [M], far [M], rgb [M, 3],
-      image [M] int32) float32 arrays, M <= max_rays.
+      depth [M] (0 without ``depths``), image [M] int32) float32 arrays, M <= max_rays.
     """
     rng = np.random.default_rng(seed)
     n_total = int(np.asarray(kp_mask).sum()) * cfg.size ** 2
     keep_frac = min(1.0, max_rays / max(n_total, 1))
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("origins", "directions", "radii",
-                                                          "near", "far", "rgb", "image")}
+                                                          "near", "far", "rgb", "depth",
+                                                          "image")}
     bg = None if background is None else tuple(float(v) for v in background)
     for i in range(len(refs)):
         kp = np.asarray(keypoints[i])[np.asarray(kp_mask[i])]
+        z = (np.zeros(len(kp)) if depths is None
+             else np.maximum(np.asarray(depths[i], np.float64)[np.asarray(kp_mask[i])], 0.0))
         if len(kp) == 0:
             continue
         w, h = (int(s) for s in refs.sizes[i])
@@ -81,6 +87,7 @@ def patch_pool(refs: Scene, keypoints: np.ndarray, kp_mask: np.ndarray, cfg: Pat
         out["near"].append(np.full(len(sel), near[i]))
         out["far"].append(np.full(len(sel), far[i]))
         out["rgb"].append(np.clip(targets[sel], 0.0, 1.0))
+        out["depth"].append(np.repeat(z, cfg.size ** 2)[sel])
         out["image"].append(np.full(len(sel), i))
     if not out["image"]:
         return {}

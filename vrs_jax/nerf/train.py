@@ -55,6 +55,7 @@ from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.ilm import ILM
 from vrs_jax.nerf.model import (
     Field,
+    depth_loss,
     init_stacked_params,
     inner_radius,
     mse_to_psnr,
@@ -155,7 +156,11 @@ def make_train_step(cfg: NerfConfig, donate: bool = True
             levels = render_levels(field, batch["origins"], batch["directions"],
                                    batch["radii"], batch["near"], batch["far"], k_render, cfg,
                                    randomized=True)
-            return nerf_loss(levels, batch["rgb"], cfg)
+            loss, mse = nerf_loss(levels, batch["rgb"], cfg)
+            if cfg.depth_loss_mult > 0:
+                loss = loss + cfg.depth_loss_mult * depth_loss(levels, batch["depth"],
+                                                               cfg.depth_loss_margin)
+            return loss, mse
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
@@ -257,6 +262,8 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
     """Split, near/far, clusters, normalisation, images -> device ray bank, eval rays.
 
     ``patch_keypoints``: optional ``(keypoints [N, K_max, 4], mask [N, K_max], PatchConfig)``
+    or that plus ``depths [N, K_max]`` (each keypoint's 3D point z-depth, <= 0 none: the
+    depth loss's targets)
     of the map, N = the scene's posed reference images in order; with
     ``cfg.patch_ray_fraction > 0`` their patch samples join the training rays
     (nerf/patch_pool.py).
@@ -309,12 +316,14 @@ def prepare(scene: Scene, cfg: NerfConfig, near: float | None = None, far: float
     ref_images = data_lib.load_images(refs, background)
     pool = None
     if patch_keypoints is not None and cfg.patch_ray_fraction > 0:
-        kps, kmask, pcfg = patch_keypoints
+        kps, kmask, pcfg = patch_keypoints[:3]
+        kdepth = patch_keypoints[3] if len(patch_keypoints) > 3 else None
         if len(kps) != len(refs):
             raise VrsError(f"patch keypoints given for {len(kps)} images, the scene has "
                            f"{len(refs)} posed reference images", scene.root)
         pool = patch_pool.patch_pool(refs, np.asarray(kps), np.asarray(kmask), pcfg, r_near,
-                                     r_far, cfg.patch_pool_max_rays, cfg.seed, background)
+                                     r_far, cfg.patch_pool_max_rays, cfg.seed, background,
+                                     None if kdepth is None else np.asarray(kdepth))
     bank = data_lib.build_bank(refs, r_near, r_far, ref_images, pool, cfg.patch_ray_fraction)
     del ref_images
     held_images = data_lib.load_images(held, background) if len(held) else []
