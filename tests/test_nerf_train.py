@@ -188,3 +188,40 @@ def test_heldout_metric_with_a_cluster_without_heldout_views(prep):
     one = float(T.make_eval_fn(CFG)(jax.tree.map(lambda x: x[:1], params), prep.cluster_data,
                                     jax.tree.map(jnp.asarray, prep.eval_batch)))
     assert np.isfinite(psnr) and abs(psnr - one) < 1e-3
+
+
+def test_depth_loss_puts_the_patch_rays_surface_at_the_given_depths(scene):
+    """Keypoint-patch rays with their point depths (here the sphere's exact depths at the
+    patch centres): with ``depth_loss_mult`` the field's weight moves into the +-20% window
+    around them; the colour loss alone leaves more of it outside."""
+    from vrs_jax import geometry
+    from vrs_jax.features.patches import PatchConfig
+    from vrs_jax.nerf import model
+
+    refs = scene.references()
+    n = len(refs)
+    off = np.array([[-3, -3], [3, -3], [-3, 3], [3, 3], [0, 0]], float) + 12.0
+    kps = np.zeros((n, 5, 4), np.float32)
+    kps[:, :, :2], kps[:, :, 2] = off, 0.5
+    depth = np.zeros((n, 5))
+    for i in range(n):  # ray-sphere intersection (unit sphere at the origin), t = z-depth
+        o, d = (np.asarray(a, np.float64) for a in
+                geometry.pixel_rays(refs.K[i], refs.R[i], refs.t[i], off))
+        b, a, c = np.sum(o * d, -1), np.sum(d * d, -1), np.sum(o * o, -1) - 1.0
+        depth[i] = (-b - np.sqrt(b * b - a * c)) / a
+    outside = {}
+    for mult in (0.0, 0.5):
+        cfg = get_config("test", depth_loss_mult=mult)
+        prep = T.prepare(scene, cfg, near=2.0, far=6.0,
+                         patch_keypoints=(kps, np.ones((n, 5), bool), PatchConfig(size=9), depth))
+        res = T.train(prep, None, steps=100, progress=False)
+        cd, bank = prep.cluster_data, prep.bank
+        field = model.Field(jax.tree.map(lambda x: x[0], res.state.params), cd.center[0],
+                            cd.scale[0], cd.background[0])
+        ones = jnp.ones(bank.pool_radii.shape)
+        levels = model.render_levels(field, bank.pool_origins, bank.pool_directions,
+                                     bank.pool_radii, 2.0 * ones, 6.0 * ones, jax.random.key(0),
+                                     cfg, False)
+        outside[mult] = float(model.depth_loss(levels, bank.pool_depth, cfg.depth_loss_margin))
+    # measured: 0.12 of the weight outside without the loss, 0.002 with it (150 steps)
+    assert outside[0.5] < 0.05 and outside[0.5] < 0.3 * outside[0.0], outside
