@@ -28,6 +28,9 @@ stored at half precision):
   - matches: mutual-NN + ratio matches rendered -> real of the same view, as localization
     matches (``features.matching.match`` with the localizer's ratio), and how many of them
     are the own keypoint;
+  - surface depth: at each keypoint's centre ray, the field's rendered depth (the map's full
+    coarse + fine sampler) over the keypoint's 3D point depth, and how often it lies inside
+    the localizer's depth window (+- ``depth_margin``), where depth-guided rendering samples;
   - NeRF map bytes (the .npz as saved, float32 and float16), parameters, training steps/s
     (after compilation) and seconds, evaluation seconds.
 Prints a table and writes JSON.
@@ -160,14 +163,25 @@ def make_evaluator(lcfg, features):
     import jax
     import jax.numpy as jnp
 
+    from vrs_jax import geometry
     from vrs_jax.features.descriptor import describe
     from vrs_jax.features.matching import match, pairwise_distances
     from vrs_jax.features.patches import extract_patches
+    from vrs_jax.features.rays import keypoint_depths
     from vrs_jax.localize.render import render_reference
+    from vrs_jax.nerf.model import render_rays, select_field
 
     def one(m, i, gray):
-        egm = m.egm
+        egm, ilm = m.egm, m.ilm
         mask = egm.kp_mask[i]
+        # the field's surface at each keypoint's centre ray against its 3D point's depth
+        z = keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
+        o, d = geometry.pixel_rays(egm.K[i], egm.R[i], egm.t[i], egm.keypoints[i][:, :2],
+                                   egm.dist[i])
+        ones = jnp.ones(z.shape)
+        rend_z = render_rays(select_field(ilm.fields, ilm.image_cluster[i]), o, d,
+                             ones * geometry.cone_radius(egm.K[i], 1.0), ones * ilm.near[i],
+                             ones * ilm.far[i], None, ilm.config)["depth"]
         rend = render_reference(m, i, features.patches, lcfg)  # [K, P, P]
         real = extract_patches(gray, egm.keypoints[i], features.patches)  # [K, P, P]
         d_rend = describe(rend, features.descriptor)
@@ -179,7 +193,9 @@ def make_evaluator(lcfg, features):
         j, valid, _ = match(d_rend, mask, d_real, mask, lcfg.ratio, lcfg.mutual)
         correct = valid & (j == jnp.arange(mask.shape[0]))
         return {"se": se, "own": own & mask, "matches": jnp.sum(valid),
-                "correct": jnp.sum(correct), "mask": mask, "d_real": d_real}
+                "correct": jnp.sum(correct), "mask": mask, "d_real": d_real,
+                "depth_ratio": rend_z / jnp.maximum(z, 1e-6),
+                "linked": mask & (egm.point_idx[i] >= 0)}
 
     return jax.jit(one)
 
@@ -191,13 +207,14 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
 
     egm = m.egm
     fn = make_evaluator(lcfg, m.config.features)
-    se, own, n_kp, n_match, n_corr, desc_err = [], [], 0, 0, 0, 0.0
+    se, own, n_kp, n_match, n_corr, desc_err, ratio = [], [], 0, 0, 0, 0.0, []
     t0 = time.perf_counter()
     for i in tqdm(views, desc="fidelity", unit="view", disable=not progress):
         out = jax.device_get(fn(m, int(i), grays[int(i)]))
         m_ = np.asarray(out["mask"], bool)
         se.append(out["se"][m_])
         own.append(out["own"][m_])
+        ratio.append(out["depth_ratio"][np.asarray(out["linked"], bool)])
         n_kp += int(m_.sum())
         n_match += int(out["matches"])
         n_corr += int(out["correct"])
@@ -209,6 +226,7 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
     own_all = np.concatenate(own)
     n_views = len(views)
     patch_psnr = -10 * np.log10(np.maximum(se_all, 1e-10))
+    ratio_all = np.concatenate(ratio)
     return {"patch_psnr_db": float(-10 * np.log10(max(se_all.mean(), 1e-10))),
             "patch_psnr_median_db": float(np.median(patch_psnr)),
             "own_keypoint_rate": float(own_all.mean()),
@@ -216,6 +234,11 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
             "correct_matches_per_view": n_corr / n_views,
             "keypoints_per_view": n_kp / n_views,
             "views": int(n_views),
+            "surface_depth_ratio_median": float(np.median(ratio_all)) if len(ratio_all)
+            else float("nan"),
+            "surface_in_window_rate": float(np.mean(np.abs(ratio_all - 1.0)
+                                                    <= lcfg.depth_margin)) if len(ratio_all)
+            else float("nan"),
             "real_desc_vs_baseline_max_abs": desc_err,
             "eval_s": time.perf_counter() - t0}
 
@@ -288,18 +311,20 @@ def run(args) -> dict[str, Any]:
            "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
            "float32": res32, "float16": res16}
     headers = ["field", "params", "MB", "evals/patch", "PSNR dB", "med dB", "own %", "match",
-               "correct", "steps/s", "train s"]
+               "correct", "surface in window %", "steps/s", "train s"]
     rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{evals_per_patch(m, lcfg):.0f}",
              f"{res32['patch_psnr_db']:.2f}",
              f"{res32['patch_psnr_median_db']:.2f}", f"{100 * res32['own_keypoint_rate']:.1f}",
              f"{res32['matches_per_view']:.1f}", f"{res32['correct_matches_per_view']:.1f}",
+             f"{100 * res32['surface_in_window_rate']:.1f}",
              fmt(train_info["steps_per_s"], 1), fmt(train_info["train_s"], 0)]]
     if res16 is not None:
         rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}", "",
                      f"{res16['patch_psnr_db']:.2f}", f"{res16['patch_psnr_median_db']:.2f}",
                      f"{100 * res16['own_keypoint_rate']:.1f}",
                      f"{res16['matches_per_view']:.1f}",
-                     f"{res16['correct_matches_per_view']:.1f}", "", ""])
+                     f"{res16['correct_matches_per_view']:.1f}",
+                     f"{100 * res16['surface_in_window_rate']:.1f}", "", ""])
     print(table(headers, rows, title=f"patch fidelity at {len(views)} reference views of "
                                      f"{Path(scene.root).name}, {args.steps} steps"))
     doc = {"benchmark": "fidelity", "argv": vars(args), "environment": environment(),

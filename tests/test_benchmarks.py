@@ -344,6 +344,8 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
         assert 0.0 <= f["own_keypoint_rate"] <= 1.0
         assert 0 <= f["correct_matches_per_view"] <= f["matches_per_view"] \
             <= f["keypoints_per_view"]
+        assert 0.0 <= f["surface_in_window_rate"] <= 1.0
+        assert f["surface_depth_ratio_median"] > 0
     # the real patches are read and described as the baseline map's descriptors were: the
     # same up to the map's storage (keypoints quantised to 1/32 px, angle to pi/256, scale to
     # 1/256 of its log range; a patch read elsewhere differs by ~0.3 somewhere)
