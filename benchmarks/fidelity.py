@@ -268,6 +268,8 @@ def run(args) -> dict[str, Any]:
         opts = dict(src.options)
         if args.query_every is None and "query_every" in opts:
             args.query_every = int(opts["query_every"])
+        if args.downscale is None and "downscale" in opts:
+            args.downscale = int(opts["downscale"])
         scene = load(args)
         st = maps.read_stats(args.map).get("ilm", {})
         train_info = {"steps": st.get("steps"), "steps_per_s": st.get("steps_per_s"),
@@ -282,6 +284,10 @@ def run(args) -> dict[str, Any]:
     refs = scene.references()
     if tuple(refs.names) != tuple(m.names):
         raise VrsError("the map and the scene list different reference images", args.root)
+    if not np.allclose(np.asarray(refs.K, np.float64), np.asarray(m.egm.K, np.float64),
+                       rtol=1e-3):
+        raise VrsError("the map's intrinsics are not the scene's (another --downscale?)",
+                       args.root)
     lcfg = localize.get_config(m.config.name, source="render",
                                **common.localize_overrides(args.localize))
     render_over = parse_overrides(args.render)
