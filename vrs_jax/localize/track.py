@@ -256,8 +256,8 @@ def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.nd
     if int(r.n_inliers) < tc.min_inliers:
         return f"{int(r.n_inliers)} inliers, fewer than {tc.min_inliers}"
     if not agrees:
-        return ("none of the map images nearest the tracked pose is among those the frame's "
-                "appearance retrieves")
+        return (f"fewer than {tc.min_retrieval_overlap} of the map images nearest the tracked "
+                "pose are among those the frame's appearance retrieves")
     dt, dr = jump(r.R, r.t, R_pred, t_pred)
     if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
         return (f"jumped {dt / scale:.3f} of the scene scale and {dr:.1f} deg from the "
