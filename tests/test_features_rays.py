@@ -125,24 +125,3 @@ def test_transfer_keypoints_follows_depth_and_roll():
     np.testing.assert_allclose(np.asarray(out[0, :2]), pts[0], atol=1e-3)
     np.testing.assert_allclose(float(out[0, 3]), want, atol=1e-4)
     np.testing.assert_allclose(float(np.angle(np.exp(1j * (out[0, 3] - 0.7)))), roll, atol=1e-4)
-
-
-def test_guided_t_vals_window_and_context():
-    z = jnp.array([2.0, 10.0, 50.0])
-    t = np.asarray(rays.guided_t_vals(z, 0.2, jnp.float32(1.0), jnp.float32(40.0), 8, 6))
-    assert t.shape == (3, 15) and np.all(np.diff(t, axis=-1) >= 0)
-    # the window: 8 even intervals from 0.8 z to 1.2 z, after 3 head intervals
-    np.testing.assert_allclose(t[:, 3:12], np.linspace(0.8, 1.2, 9)[None] * np.asarray(z)[:, None],
-                               rtol=1e-5)
-    # head from near, tail to far, both even in disparity
-    np.testing.assert_allclose(t[1, 0], 1.0)
-    np.testing.assert_allclose(t[1, -1], 40.0, rtol=1e-6)
-    np.testing.assert_allclose(np.diff(1.0 / t[1, :4]), np.diff(1.0 / t[1, :4])[0], rtol=1e-4)
-    np.testing.assert_allclose(np.diff(1.0 / t[1, 11:]), np.diff(1.0 / t[1, 11:])[0], rtol=1e-4)
-    # a window beyond the far bound: the tail collapses onto its end (empty intervals)
-    np.testing.assert_allclose(t[2, 11:], 60.0, rtol=1e-6)
-    # no context: the narrow interval's even samples
-    near, far = rays.narrow_interval(z, 0.2, (3, 1, 1))
-    t0 = np.asarray(rays.guided_t_vals(z, 0.2, jnp.float32(1.0), jnp.float32(40.0), 8, 0))
-    np.testing.assert_allclose(t0, np.linspace(np.asarray(near)[:, 0, 0],
-                                               np.asarray(far)[:, 0, 0], 9, axis=-1), rtol=1e-6)

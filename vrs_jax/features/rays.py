@@ -64,35 +64,6 @@ def keypoint_depths(points3d: Array, point_idx: Array, R: Array, t: Array) -> Ar
     return geometry.transform_points(R, t, X)[..., 2]
 
 
-def guided_t_vals(depth: Array, margin: float, near: Array, far: Array, n_window: int,
-                  n_context: int) -> Array:
-    """Interval endpoints [Kp, n_window + n_context + 1] of a depth-guided ray with context.
-
-    ``n_window`` even intervals inside the window +-margin around the keypoint's point depth
-    (:func:`narrow_interval`), and ``n_context`` wider ones outside it: half of them (rounded
-    down) from the ray's near bound to the window, the rest from the window to the far
-    bound, both even in disparity. A patch ray that leaves the keypoint's surface (a silhouette
-    against the sky, an occluder in front) then still meets what it sees instead of the empty
-    window's background. depth: [Kp]; near, far: [] or [Kp] (the full sampler's bounds).
-    Sorted; where the window reaches past a bound the context intervals there are empty.
-    """
-    d = jnp.maximum(depth, 1e-3)
-    lo, hi = d * (1.0 - margin), d * (1.0 + margin)
-    near = jnp.minimum(jnp.broadcast_to(near, d.shape), lo)
-    far = jnp.maximum(jnp.broadcast_to(far, d.shape), hi)
-    n_head = n_context // 2
-    n_tail = n_context - n_head
-
-    def disparity(a, b, n):  # n + 1 endpoints from a to b, even in 1/t -> [Kp, n + 1]
-        s = jnp.linspace(0.0, 1.0, n + 1)
-        return 1.0 / ((1.0 / a)[:, None] * (1.0 - s) + (1.0 / b)[:, None] * s)
-
-    s = jnp.linspace(0.0, 1.0, n_window + 1)
-    window = lo[:, None] * (1.0 - s) + hi[:, None] * s
-    parts = [disparity(near, lo, n_head)[:, :-1], window, disparity(hi, far, n_tail)[:, 1:]]
-    return jnp.concatenate(parts, axis=-1)
-
-
 def narrow_interval(depth: Array, margin: float, shape: tuple[int, ...]) -> tuple[Array, Array]:
     """Depth-guided [near, far] per ray around the keypoint's point depth.
 

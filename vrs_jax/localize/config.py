@@ -143,12 +143,6 @@ class LocalizeConfig:
     # patch then costs probe_grid^2 x narrow_samples + rays x narrow_fine evaluations
     # instead of rays x (narrow_samples + narrow_fine). 0: off (every ray its own passes).
     probe_grid: int = 0
-    # Probes only: this many more samples outside the depth window, half from the ray's near
-    # bound to the window and half from the window to its far bound, even in disparity
-    # (rays.guided_t_vals). A patch ray that leaves the keypoint's surface (the sky beyond a
-    # roof edge, an occluder in front) then draws its resampled samples where its probes saw
-    # content, not in an empty window composited onto the background. 0: the window only.
-    context_samples: int = 0
     # Render mode: keypoints per retrieved image that the first pass renders and matches,
     # those of the longest tracks first (render.first_pass_keypoints); 0: every one.
     first_pass_keypoints: int = 0

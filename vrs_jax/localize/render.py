@@ -26,10 +26,10 @@ from vrs_jax.features.descriptor import rgb_to_gray
 from vrs_jax.features.patches import PatchConfig
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.maps import Map
+from vrs_jax.nerf.mipnerf import stratified_t_vals
 from vrs_jax.nerf.model import (
     Field,
     render_rays,
-    render_rays_at,
     render_rays_narrow,
     render_rays_resampled,
     select_field,
@@ -86,8 +86,8 @@ def sampler(field: Field, nerf_cfg, cfg: LocalizeConfig) -> Callable[..., dict[s
     return lambda o, d, r, n, f: render_rays(field, o, d, r, n, f, None, nerf_cfg)
 
 
-def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, near: Array,
-                  far: Array, n_kp: Array, nerf_cfg, cfg: LocalizeConfig) -> Array:
+def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Array,
+                  nerf_cfg, cfg: LocalizeConfig) -> Array:
     """Colours [Kp, P', P', 3] of the patches' rendered rays (every ``render_stride``-th
     sample of the full grid), their samples placed by a few probe rays per patch.
 
@@ -97,32 +97,30 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, near: Arra
     Their weights, interpolated bilinearly over the patch, are the proposal from which each
     rendered ray draws its ``narrow_fine`` samples (mip-NeRF's fine level, with the coarse
     level of the neighbouring probes instead of its own: the rays of one patch are a few
-    pixels apart and cross the same surface). With ``context_samples`` the probes also
-    sample the ray outside the window, between ``near`` and ``far`` ([] or [Kp], the full
-    sampler's bounds; :func:`vrs_jax.features.rays.guided_t_vals`). pr: the full grid
-    [Kp, P, P, ...]; n_kp: the valid keypoints, a prefix of the rows.
+    pixels apart and cross the same surface). pr: the full grid [Kp, P, P, ...]; n_kp: the
+    valid keypoints, a prefix of the rows.
     """
     g, stride = cfg.probe_grid, cfg.render_stride
     P = pr.radii.shape[1]
     step = (P - 1) // (g - 1)
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
     probe = jax.tree.map(lambda x: x[:, ::step, ::step], pr)  # [Kp, g, g, ...]
-    kp_n = depth.shape[0]
-    # the probes' intervals, one set a patch (computed, not read back: a skipped chunk's
-    # zeros would make empty intervals)
-    t_vals = rays_mod.guided_t_vals(depth, cfg.depth_margin, near, far, cfg.narrow_samples,
-                                    cfg.context_samples)  # [Kp, S + 1]
-    t_probe = jnp.broadcast_to(t_vals[:, None, None], (kp_n, g, g, t_vals.shape[-1]))
-    coarse = lambda o, d, r, tv: render_rays_at(field, o, d, r, tv, None, nerf_cfg)  # noqa: E731
+    near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, probe.radii.shape)
+    coarse = lambda o, d, r, n, f: render_rays_narrow(  # noqa: E731
+        field, o, d, r, n, f, None, nerf_cfg, cfg.narrow_samples)
     # chunks of as many patches as the rendered rays' chunks hold: a chunk of probes past
     # the last valid keypoint is skipped as the rendered rays' are
     side = (P - 1) // stride + 1
     per_chunk = max(1, cfg.render_chunk // (side * side)) * g * g
     out = render_flat(coarse, (flat(probe.origins), flat(probe.directions), flat(probe.radii),
-                               flat(t_probe)), n_kp * g * g,
+                               flat(near), flat(far)), n_kp * g * g,
                       dataclasses.replace(cfg, render_chunk=per_chunk),
                       keys=("weights",))
+    kp_n = depth.shape[0]
     weights = out["weights"].reshape(kp_n, g, g, -1)  # zeros where a chunk was skipped
+    # the probes' intervals, one window a patch (computed, not read back: a skipped chunk's
+    # zeros would make empty intervals)
+    t_vals = stratified_t_vals(None, near[:, 0, 0], far[:, 0, 0], cfg.narrow_samples, False)
     W = jnp.asarray(interpolation_matrix(g, step)[::stride])  # [P', g]
     w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, P', P', S]
     rays = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
@@ -151,7 +149,7 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
     check_grids(patches, cfg)
     n_kp = jnp.sum(mask)
     if cfg.probe_grid > 0:
-        rgb = render_probed(field, pr, depth, near, far, n_kp, nerf_cfg, cfg)
+        rgb = render_probed(field, pr, depth, n_kp, nerf_cfg, cfg)
         P = rgb.shape[1]
     else:
         if stride > 1:

@@ -264,11 +264,11 @@ CPU_SMALL = dataclasses.replace(
     eval_every=500,
     checkpoint_every=1000,
     # The depth loss (weight outside +-20% of the keypoint's point depth; NerfConfig above).
-    # Without it the phone walk's field put its surfaces at 1.6x the EGM depth for points
-    # nearer than 3 units and at 0.46x for points beyond 100 (median ratios), so the
-    # localizer's depth window rendered empty space; with 0.02, 94-95% of points nearer than
-    # 100 units render within 20% of their depth, the walk's render recall within 1% / 2% of
-    # the scale went from 29.0 / 45.2% to 51.6 / 61.3% (31 queries); 0.1 gave 38.7 / 51.6%.
+    # Without it the phone walk's field rendered the surface inside that window for 22% of
+    # the keypoints (benchmarks.fidelity), so the localizer's depth-guided rendering sampled
+    # empty space; with 0.02, 84%, and the walk's render recall within 1% / 2% of the scale
+    # went from 29.0 / 45.2% to 51.6 / 61.3% (31 queries) while fox and scan24 stayed at
+    # 100 / 100% (README); 0.1 gave 38.7 / 51.6% on the walk.
     depth_loss_mult=0.02,
 )
 
