@@ -63,7 +63,7 @@ class EGMConfig:
 
 CONFIGS: dict[str, EGMConfig] = {
     "paper": EGMConfig(),
-    # Laptop CPU: 512 keypoints per image detected, 256 kept; 8 visual words (1024-D VLAD,
+    # Laptop CPU: 1024 keypoints per image detected, 256 kept; 8 visual words (1024-D VLAD,
     # 2 KB per image): small scenes of a few hundred images retrieve as well as with 16
     # (100% top-5 on the synthetic scene either way) and the global descriptors, which both
     # the VRS and the baseline map carry, stay below the keypoints in size.

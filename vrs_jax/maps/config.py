@@ -35,7 +35,7 @@ CONFIGS: dict[str, MapConfig] = {
     # The paper's scale (a GPU job): 2048 SIFT keypoints detected and 1024 kept per image,
     # 15x15 patches, an 8x256 Mip-NeRF with 128 + 128 samples, 200k steps.
     "paper": MapConfig("paper", egm_build.get_config("paper"), nerf_config.get_config("paper")),
-    # Two CPU cores (the demo): 512 keypoints detected and 256 kept, 15x15 patches, a
+    # Two CPU cores (the demo): 1024 keypoints detected and 256 kept, 15x15 patches, a
     # 16-level hash grid with a 2x64 MLP, 32 + 32 samples, 4000 steps (7-8 minutes).
     "cpu-small": MapConfig("cpu-small", egm_build.get_config("cpu-small"),
                            nerf_config.get_config("cpu-small")),
