@@ -260,12 +260,13 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print, need_nerf
     return SceneCtx(name, spec, scene, queries, map_dir, m)
 
 
-def prepare_scenes(args, log: Callable[[str], None] = print
+def prepare_scenes(args, log: Callable[[str], None] = print, need_nerf: bool = True
                    ) -> tuple[list[SceneCtx], list[dict[str, str]]]:
-    """Every scene of ``--scenes``: (ready scenes, skipped scenes with the reason)."""
+    """Every scene of ``--scenes``: (ready scenes, skipped scenes with the reason);
+    ``need_nerf`` as :func:`prepare_scene`."""
     ready, skipped = [], []
     for name in parse_scenes(args.scenes):
-        ctx = prepare_scene(name, args, log)
+        ctx = prepare_scene(name, args, log, need_nerf=need_nerf)
         if ctx is None:
             skipped.append({"scene": name, "reason": "data not found"})
         else:

@@ -172,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         raise VrsError(f"--modes must list some of {', '.join(MODES)}, got {args.modes!r}")
     overrides = common.localize_overrides(args.localize)
     doc = common.base_doc("localize", args, argv)
-    ctxs, skipped = common.prepare_scenes(args)
+    # real patches and the SIFT reference need no NeRF: an EGM-only map will do for them
+    ctxs, skipped = common.prepare_scenes(args, need_nerf="render" in modes)
     rows, maps = [], {}
     for ctx in ctxs:
         maps[ctx.name] = common.map_info(ctx)

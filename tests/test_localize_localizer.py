@@ -151,3 +151,17 @@ def test_cached_path_exits_early_like_the_fused_path(tiny_map, queries):
         assert len(full.cache) == 3
         saved += len(cold.cache) < 3
     assert saved > 0  # the exit happened somewhere (the test can fail)
+
+
+def test_egm_only_map_localizes_with_real_patches(tiny_map, queries, tmp_path, loc):
+    """Real patches need no NeRF: a map saved before (or without) its NeRF training gives the
+    full map's real-patch pose; render mode refuses it with a clear error."""
+    m = maps.load_map(tiny_map)
+    egm_only = maps.save_map(m.replace(ilm=None), tmp_path / "egm_only")
+    with pytest.raises(VrsError, match="no trained NeRF"):
+        maps.load_map(egm_only)
+    path, K, dist = queries.image_paths[0], queries.K[0], queries.dist[0]
+    _same(Localizer(egm_only, "test", source="real").localize_image(path, K, dist),
+          loc.localize_image(path, K, dist))
+    with pytest.raises(VrsError, match="no trained NeRF"):
+        Localizer(egm_only, "test", source="render")

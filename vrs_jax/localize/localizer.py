@@ -83,7 +83,9 @@ class Localizer:
         if isinstance(map_or_dir, Map):
             self.map = map_or_dir
         else:
-            self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real")
+            # real patches need no NeRF: an EGM-only map (experiments.build_egm) will do
+            self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real",
+                                require_ilm=self.cfg.source == "render")
         self.mesh = batch_lib.query_mesh(devices)
         self._placed_map: Map | list[Map] | None = None
 
