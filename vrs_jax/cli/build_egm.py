@@ -4,8 +4,9 @@
         [--export-colmap DIR] [--binary]
 
 Writes a map folder (see vrs_jax.maps.map) holding the EGM and the real-patch descriptors but
-no trained NeRF yet: ``experiments.train`` with the same --out and settings continues it into a
-complete map. ``--format images`` takes a folder of unposed photos: pycolmap's incremental
+no trained NeRF yet: ``experiments.localize --mode real`` localizes with it as it is (real
+patches need no NeRF), and ``experiments.train`` with the same --out and settings continues it
+into a complete map. ``--format images`` takes a folder of unposed photos: pycolmap's incremental
 SfM recovers the poses first (work files in MAPDIR/sfm). Re-running with the same settings
 skips the build; a folder holding another map is refused.
 """

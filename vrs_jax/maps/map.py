@@ -325,7 +325,9 @@ def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = T
                            d / ILM_FILE)
         _check_trained(ilm, meta, d / ILM_FILE)
     elif require_ilm:
-        raise VrsError("the map has no trained NeRF yet: finish its training run", d)
+        raise VrsError("the map has no trained NeRF yet: finish its training run "
+                       "(experiments.train with the same --out), or localize with real "
+                       "patches (--mode real), which need none", d)
     return Map(egm=egm, ilm=ilm, config=cfg, source=source)
 
 
