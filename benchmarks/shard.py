@@ -67,7 +67,7 @@ def worker(args: argparse.Namespace) -> dict:
     n = args.worker
     if len(jax.devices()) < n:
         raise VrsError(f"{n} devices wanted, {len(jax.devices())} available")
-    m = maps.load_map(args.map_dir, descriptors=args.source == "real")
+    m = maps.load_map_for(args.map_dir, args.source)
     qs = load_scene("7scenes", args.scene_root).queries()
     cfg = localize.get_config(m.config.name, source=args.source)
     idx = np.arange(args.batch) % len(qs)

@@ -267,8 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     if not modes or any(s not in RUNS for s in modes):
         raise VrsError(f"--modes must list some of {', '.join(RUNS)}, got {args.modes!r}")
     doc = common.base_doc("track", args, argv)
-    m = maps.load_map(args.map, descriptors=args.mode == "real",
-                      require_ilm=args.mode == "render")  # real patches need no NeRF
+    m = maps.load_map_for(args.map, args.mode)
     cfg = config_of(m, args)
     scene, queries = stream_of(m, args)
     n = len(queries)

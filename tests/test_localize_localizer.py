@@ -165,3 +165,4 @@ def test_egm_only_map_localizes_with_real_patches(tiny_map, queries, tmp_path, l
           loc.localize_image(path, K, dist))
     with pytest.raises(VrsError, match="no trained NeRF"):
         Localizer(egm_only, "test", source="render")
+    assert maps.load_map_for(egm_only, "gt").has_descriptors  # the CLI's alias of "real"

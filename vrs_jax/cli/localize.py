@@ -214,8 +214,7 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                   ) -> tuple[dict, str]:
     """Load the map, localize the queries, write results.txt, summary.json and run.json
     into ``out``. Returns (summary, title of its table)."""
-    m = maps.load_map(args.map, descriptors=args.mode != "render",
-                      require_ilm=args.mode == "render")  # real patches need no NeRF
+    m = maps.load_map_for(args.map, args.mode)
     cfg = make_config(m, args)
     queries = query_scene(m, args, out / "sfm")
     # the map's own dataset (its root recorded in the map) must not be replaced either

@@ -37,7 +37,7 @@ from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.render import first_pass_keypoints
 from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult, failure_reason
-from vrs_jax.maps import Map, load_map
+from vrs_jax.maps import Map, load_map_for
 
 
 def _resolve_config(cfg: LocalizeConfig | str | None, source: str | None) -> LocalizeConfig:
@@ -83,9 +83,7 @@ class Localizer:
         if isinstance(map_or_dir, Map):
             self.map = map_or_dir
         else:
-            # real patches need no NeRF: an EGM-only map (experiments.build_egm) will do
-            self.map = load_map(map_or_dir, descriptors=self.cfg.source == "real",
-                                require_ilm=self.cfg.source == "render")
+            self.map = load_map_for(map_or_dir, self.cfg.source)
         self.mesh = batch_lib.query_mesh(devices)
         self._placed_map: Map | list[Map] | None = None
 

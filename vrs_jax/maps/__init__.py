@@ -9,7 +9,15 @@ Stage order: data -> features -> egm / nerf -> **maps** -> localize -> eval.
 
 from vrs_jax.maps.build import build_map
 from vrs_jax.maps.config import CONFIGS, MapConfig, get_config
-from vrs_jax.maps.map import Map, MapSource, load_map, map_bytes, read_stats, save_map
+from vrs_jax.maps.map import (
+    Map,
+    MapSource,
+    load_map,
+    load_map_for,
+    map_bytes,
+    read_stats,
+    save_map,
+)
 
 __all__ = ["CONFIGS", "Map", "MapConfig", "MapSource", "build_map", "get_config", "load_map",
-           "map_bytes", "read_stats", "save_map"]
+           "load_map_for", "map_bytes", "read_stats", "save_map"]

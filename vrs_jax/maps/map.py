@@ -331,6 +331,13 @@ def load_map(folder: str | Path, descriptors: bool = True, require_ilm: bool = T
     return Map(egm=egm, ilm=ilm, config=cfg, source=source)
 
 
+def load_map_for(folder: str | Path, source: str) -> Map:
+    """:func:`load_map` for a localization mode: ``"render"`` needs the trained NeRF; any
+    other (``"real"``, its alias ``"gt"``) loads the real-patch descriptors and needs no NeRF
+    (an EGM-only map will do)."""
+    return load_map(folder, descriptors=source != "render", require_ilm=source == "render")
+
+
 def _check_trained(ilm: ILM, meta: dict, p: Path) -> None:
     """VrsError unless the NeRF trained (``stats.ilm.steps`` > 0 where recorded) to finite
     parameters."""
