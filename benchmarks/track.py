@@ -18,9 +18,12 @@ the gap it takes to track again and to be right again (within 2% of the scene sc
 2 deg). Reported per run: recall at 1%/1deg and 2%/2deg of the scene scale (the median
 distance of the cameras to their centroid, as benchmarks.localize), median errors, the
 median latency per frame (reading and query preparation included, compilation excluded by
-a warm-up), and how the frames were localized: tracked, relocalized (tracking rejected,
-then localized in full), in full without a prior (the first frame, after a gap), flagged
-(unreadable or blank). --plot draws the error and the latency along the stream.
+a warm-up), and how the frames were localized: tracked (in brackets those whose pose is
+the check pass's: the tracking pass's disagreed with the frame's own matches), relocalized
+(tracking rejected, then localized in full), in full without a prior (the first frame, after
+a gap), flagged (unreadable or blank); and wrong 'localized': poses more than 5% of the
+scene scale or 5 deg off whose verdict is "localized" (a wrong pose reported as right).
+--plot draws the error and the latency along the stream.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import common
+from benchmarks.confidence import WRONG_R, WRONG_T
 from vrs_jax import localize, maps
 from vrs_jax.cli.common import add_scene_args, load_scene_from_args
 from vrs_jax.errors import VrsError, cli_main
@@ -123,6 +127,7 @@ def run_track(loc: Localizer, queries, idx: np.ndarray, progress: bool) -> dict:
     return {"frames": idx.tolist(), "t_err": dt.tolist(), "R_err_deg": dr.tolist(),
             "latency_s": [tr.latency_s for tr in tracks],
             "tracked": [tr.tracked for tr in tracks],
+            "by_check": [tr.by_check for tr in tracks],
             "relocalized": [tr.relocalized for tr in tracks],
             "full_no_prior": [tr.error is None and not tr.attempted for tr in tracks],
             "flagged": [tr.error is not None for tr in tracks],
@@ -196,7 +201,12 @@ def summary_row(label: str, run: dict, scale: float) -> dict:
     if "tracked" in run:
         lat = np.asarray(run["latency_s"])
         tr = np.asarray(run["tracked"], bool)
+        wrong = (dt > WRONG_T * scale) | (dr > WRONG_R) | ~np.isfinite(dt)
         row.update(n_tracked=int(tr.sum()), n_relocalized=int(np.sum(run["relocalized"])),
+                   n_by_check=int(np.sum(run.get("by_check", [False] * len(tr)))),
+                   # poses more than 5% / 5 deg off that the result calls "localized"
+                   n_wrong_localized=int(np.sum(wrong & (np.asarray(run["verdict"])
+                                                         == "localized"))),
                    n_full_no_prior=int(np.sum(run["full_no_prior"])),
                    n_flagged=int(np.sum(run["flagged"])),
                    median_latency_tracked_s=float(np.median(lat[tr])) if tr.any() else None,
@@ -211,15 +221,17 @@ def summary_row(label: str, run: dict, scale: float) -> dict:
 def print_table(rows: list[dict], title: str) -> None:
     print(common.table(
         ["run", "frames", "1%/1deg", "2%/2deg", "median (% scale, deg)", "median s/frame",
-         "tracked s/frame", "tracked", "relocalized", "lost+recovered", "full (no prior)",
-         "flagged"],
+         "tracked s/frame", "tracked (by check)", "relocalized", "lost+recovered",
+         "full (no prior)", "flagged", "wrong 'localized'"],
         [[r["run"], r["n_frames"], common.pct(r["recall_relative"]["1pct_1deg"]),
           common.pct(r["recall_relative"]["2pct_2deg"]),
           f"{common.fmt(100 * r['median_t_rel'])}, {common.fmt(r['median_R_deg'])}",
           common.fmt(r["median_latency_s"], 3), common.fmt(r.get("median_latency_tracked_s"), 3),
-          r.get("n_tracked", "-"), r.get("n_relocalized", "-"),
+          f"{r['n_tracked']} ({r['n_by_check']})" if "n_by_check" in r else "-",
+          r.get("n_relocalized", "-"),
           f"{r['n_lost']}+{r['n_lost_recovered']}" if "n_lost" in r else "-",
-          r.get("n_full_no_prior", "-"), r.get("n_flagged", "-")] for r in rows],
+          r.get("n_full_no_prior", "-"), r.get("n_flagged", "-"),
+          r.get("n_wrong_localized", "-")] for r in rows],
         title=title))
 
 

@@ -371,6 +371,8 @@ def test_track_benchmark_json_and_plot(tiny_map, stream_scene, tmp_path):
     assert rows["track"]["n_frames"] == 5 and rows["track, jump"]["n_frames"] == 4
     assert rows["track"]["n_tracked"] + rows["track"]["n_relocalized"] + rows["track"][
         "n_full_no_prior"] == 5
+    assert 0 <= rows["track"]["n_by_check"] <= rows["track"]["n_tracked"]
+    assert rows["track"]["n_wrong_localized"] == 0  # the synthetic stream: none > 5% off
     assert _finite(rows["full"]["median_latency_s"], rows["track"]["median_latency_s"])
     assert doc["jump"]["dropped"] == [2, 3] and doc["jump"]["first_frame_after_gap"] == 3
     assert cv2.imread(str(png)) is not None

@@ -80,6 +80,20 @@ class TrackConfig:
     # that far from the prediction also re-anchors the motion prior (the stream jumped).
     max_jump: float = 0.1
     max_jump_deg: float = 10.0
+    # A tracked pose is kept only if the check pass (the frame matched to the tracking
+    # pass's candidates without the prediction, then RANSAC and refinement:
+    # track.check_pass) finds a pose within this fraction of the scene scale and this angle
+    # of it: inliers gathered near the predicted projections can agree with a wrong
+    # prediction, matches made anywhere in the image do not. 2% / 2 deg is the benchmarks'
+    # outer recall threshold. 0: not checked.
+    max_disagreement: float = 0.02
+    max_disagreement_deg: float = 2.0
+    # When the tracked pose is rejected, keep the check pass's pose instead if it passes the
+    # tests a tracked pose passes on its own (a "localized" verdict, min_inliers, the
+    # retrieval overlap; not the jump: the check pass does not start from the prediction),
+    # before localizing the frame in full: it is a first pass plus re-matching on the
+    # references nearest the prediction, for the patches already rendered.
+    keep_check: bool = True
     # Frames since the last good pose beyond which a frame is localized in full instead of
     # predicted: constant velocity extrapolates its error with the gap; after a few lost
     # frames a full pass is cheaper than a failed tracking step plus a full pass.
@@ -96,6 +110,9 @@ class TrackConfig:
                 or self.refine_passes < 0 or self.min_retrieval_overlap < 0):
             raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1, "
                            "refine_passes >= 0, min_retrieval_overlap >= 0")
+        if self.max_disagreement < 0 or self.max_disagreement_deg <= 0:
+            raise VrsError("TrackConfig.max_disagreement must be >= 0 (0: not checked) and "
+                           "max_disagreement_deg > 0")
         if not (self.radius_px > 0 and self.max_jump > 0 and self.max_jump_deg > 0
                 and 0 < self.max_ray_angle_deg <= 180):
             raise VrsError("TrackConfig.radius_px, max_jump and max_jump_deg must be > 0, "

@@ -13,9 +13,14 @@ a frame needs only the guided pass, started from a predicted pose instead of a f
     re-match    ``track.refine_passes`` guided passes from the tracked pose on the patches
                 the track pass rendered (nothing rendered again), with the config's guided
                 radius and inlier threshold: the tight gates of a guided pass
-    accept      the verdict of the pose confidence is "localized", enough inliers, and the
-                pose did not jump far from the prediction (:func:`rejection`); else the
-                frame is localized in full (retrieval + first pass + guided)
+    check       the frame matched to the same candidates without the prediction (every
+                query keypoint against every candidate descriptor, as the first pass
+                matches; nothing rendered again), RANSAC and refinement: a pose that owes
+                nothing to the prediction (:func:`check_pass`)
+    accept      the verdict of the pose confidence is "localized", enough inliers, the
+                pose did not jump far from the prediction, and the check pass's pose agrees
+                with it (:func:`rejection`); else the frame is localized in full (retrieval
+                + first pass + guided)
 
 The first frame, a frame after more than ``track.max_gap`` frames without a good pose, and a
 frame whose tracking is rejected are localized in full. An unreadable frame, or one with fewer
@@ -31,7 +36,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -180,8 +185,40 @@ def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
                                guided_threshold_px=cfg.track.threshold_px)
 
 
+class TrackStep(NamedTuple):
+    """A tracking step's output: ``result`` the tracked pose (the tracking pass and its
+    re-matching passes); ``check`` the check pass's pose (:func:`check_pass`)."""
+
+    result: LocalizeResult
+    check: LocalizeResult
+
+
+def check_pass(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, desc: Array, mask: Array
+               ) -> LocalizeResult:
+    """The frame's pose from the tracking pass's candidates without the prediction: every
+    query keypoint matched to every candidate descriptor (desc [k * K_max, D], mask
+    [k * K_max] of the references ``idx`` [k]; the first pass's matching, ratio test and
+    mutual check), then the first pass's RANSAC seed and refinement. The tracking pass
+    matches only near the projections of the predicted pose, so a wrong prediction can
+    gather consistent inliers of its own that keep the pose where the prediction put it
+    (the phone walk's held-out leg: 5 tracked poses 10-24% of the scale off); these matches
+    do not depend on it. Then ``track.refine_passes`` re-matching passes from that pose, as
+    the tracked pose has. The prediction still chose the references (and, in render mode,
+    the viewpoint and the points rendered): within the descriptors' invariance the pose is
+    the frame's own, as a full localization's first pass is on retrieved references."""
+    k, k_max = idx.shape[0], m.egm.point_idx.shape[1]
+    s: st.State = {"idx": idx, "desc": desc.reshape(k, k_max, -1),
+                   "desc_mask": mask.reshape(k, k_max)}
+    for stage in (st.matching, st.ransac, st.refinement):
+        s.update(stage(m, q, cfg, s))
+    res = s["result"]
+    for _ in range(cfg.track.refine_passes):  # as the tracked pose: the guided gates
+        res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
+    return res
+
+
 def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
-                cfg: LocalizeConfig) -> LocalizeResult:
+                cfg: LocalizeConfig) -> TrackStep:
     st.check(m, cfg)
     k = min(cfg.track.top_k or cfg.top_k, m.egm.num_images)
     idx = nearest_references(m, q.K, R_pred, t_pred, size, k, cfg.track.max_ray_angle_deg)
@@ -200,24 +237,29 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
                       n_rendered_first=res.n_rendered)
     for _ in range(cfg.track.refine_passes):  # the same patches, the guided pass's gates
         res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
-    return res
+    if cfg.track.max_disagreement <= 0:  # not checked: no check pass
+        return TrackStep(res, res)
+    chk = check_pass(m, q, cfg, idx, desc, mask)
+    return TrackStep(res, chk.replace(n_rendered=res.n_rendered_first,
+                                      n_rendered_first=res.n_rendered_first))
 
 
 _track_jit = jax.jit(_track_step, static_argnames=("cfg",))
 
 
 def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
-               cfg: LocalizeConfig) -> LocalizeResult:
+               cfg: LocalizeConfig) -> TrackStep:
     """One tracking step (jitted; cfg static; one compilation per map and config).
 
     Args:
       m: the map; q: the frame's Query; R_pred [3, 3], t_pred [3]: the predicted
         world-to-camera pose; size: [2] the frame's width and height in pixels.
     Returns:
-      LocalizeResult: ``retrieved`` the references used (:func:`nearest_references`);
-      R_first, t_first, n_inliers_first the tracking pass's pose; R, t, n_inliers after the
-      re-matching passes (``n_inliers_guided`` the last one's); success False (and the
-      predicted pose) when the tracking pass found no pose.
+      TrackStep: ``result`` with ``retrieved`` the references used
+      (:func:`nearest_references`); R_first, t_first, n_inliers_first the tracking pass's
+      pose; R, t, n_inliers after the re-matching passes (``n_inliers_guided`` the last
+      one's); success False (and the predicted pose) when the tracking pass found no pose.
+      ``check``: the check pass's result (:func:`check_pass`; success False without a pose).
     """
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     return _track_jit(m, q, f32(R_pred), f32(t_pred), f32(size), cfg)
@@ -241,13 +283,12 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
     return len(set(idx.tolist()) & set(np.asarray(used).tolist())) >= need
 
 
-def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.ndarray,
-              scale: float, cfg: LocalizeConfig, agrees: bool = True) -> str | None:
-    """Why a tracked pose is not kept (None: kept): no pose, a verdict other than
-    "localized", fewer than ``track.min_inliers`` inliers, references that the frame's
-    appearance does not retrieve (``agrees`` False: :func:`appearance_agrees`), or a jump
-    from the prediction beyond ``track.max_jump`` (fraction of the scene ``scale``) or
-    ``track.max_jump_deg``."""
+def pose_rejection(r: LocalizeResult, verdict: str, cfg: LocalizeConfig,
+                   agrees: bool = True) -> str | None:
+    """Why a pose of a tracking step is not kept on its own merits (None: kept): no pose, a
+    verdict other than "localized", fewer than ``track.min_inliers`` inliers, or
+    references that the frame's appearance does not retrieve (``agrees`` False:
+    :func:`appearance_agrees`)."""
     tc = cfg.track
     if not bool(r.success):
         return "the tracking pass found no pose"
@@ -258,10 +299,32 @@ def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.nd
     if not agrees:
         return (f"fewer than {tc.min_retrieval_overlap} of the map images nearest the tracked "
                 "pose are among those the frame's appearance retrieves")
+    return None
+
+
+def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.ndarray,
+              scale: float, cfg: LocalizeConfig, agrees: bool = True,
+              check: LocalizeResult | None = None) -> str | None:
+    """Why a tracked pose is not kept (None: kept): :func:`pose_rejection`, a jump from the
+    prediction beyond ``track.max_jump`` (fraction of the scene ``scale``) or
+    ``track.max_jump_deg``, or a check pass (``check``, :func:`check_pass`; None: not
+    checked) without a pose or farther from the tracked pose than ``track.max_disagreement``
+    or ``track.max_disagreement_deg``."""
+    tc = cfg.track
+    reason = pose_rejection(r, verdict, cfg, agrees)
+    if reason is not None:
+        return reason
     dt, dr = jump(r.R, r.t, R_pred, t_pred)
     if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
         return (f"jumped {dt / scale:.3f} of the scene scale and {dr:.1f} deg from the "
                 "prediction")
+    if check is not None and tc.max_disagreement > 0:
+        if not bool(check.success):
+            return "the check pass (matches made without the prediction) found no pose"
+        dt, dr = jump(r.R, r.t, check.R, check.t)
+        if dt > tc.max_disagreement * scale or dr > tc.max_disagreement_deg:
+            return (f"the check pass's pose (matches made without the prediction) is "
+                    f"{dt / scale:.3f} of the scene scale and {dr:.1f} deg away")
     return None
 
 
@@ -274,7 +337,9 @@ class TrackResult:
 
     name: the frame's name; tracked: the pose is the tracking step's (else a full
     localization, or none); attempted: a prediction existed and the tracking step ran;
-    rejected: why that tracked pose was not kept (None if kept or not attempted);
+    rejected: why the tracking pass's pose was not kept (None if kept or not attempted);
+    by_check: the pose kept is the check pass's (:func:`check_pass`; the tracking pass's
+    was rejected, ``rejected`` says why), tracked all the same (no full localization);
     confidence, verdict: the pose confidence (localize.confidence) of the pose returned;
     latency_s: wall seconds of the frame (reading, preparation, tracking and any full
     localization); R_pred, t_pred: the prediction (None without one); error: why the frame
@@ -302,6 +367,7 @@ class TrackResult:
     inlier_centre_std: float = float("nan")
     centre_std_first: float = float("nan")
     tracked: bool = False
+    by_check: bool = False
     attempted: bool = False
     rejected: str | None = None
     confidence: float = 0.0
@@ -395,7 +461,7 @@ def frame_image(frame: Any, size: Any = None) -> np.ndarray:
 def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dist: Any,
                  prepare: Callable[..., Query], full: Callable[[Query], LocalizeResult],
                  names: Sequence[str] | None = None, progress: bool = False,
-                 step: Callable[..., LocalizeResult] = track_step,
+                 step: Callable[..., TrackStep] = track_step,
                  sizes: Sequence[Any] | None = None) -> list[TrackResult]:
     """Track a stream: per frame a :class:`TrackResult`, in order (module docstring).
 
@@ -441,25 +507,43 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
             continue
         pred = predict_pose(history, i, tc.max_gap)
         extra: dict[str, Any] = {"attempted": pred is not None}
-        r, reason = None, None
         if pred is not None:
             extra.update(R_pred=pred[0], t_pred=pred[1])
             size = np.array([gray.shape[1], gray.shape[0]], np.float32)
-            r = jax.device_get(step(m, q, pred[0], pred[1], size, cfg))
-            conf, verdict = confidence_of(r, scale, cfg)
-            reason = rejection(r, verdict, pred[0], pred[1], scale, cfg,
-                               appearance_agrees(m, q, r.retrieved, cfg))
-        if pred is not None and reason is None:
-            extra.update(tracked=True)
-        else:
+            out_step = jax.device_get(step(m, q, pred[0], pred[1], size, cfg))
+            r, conf, verdict, kept = accepted(m, q, cfg, out_step, pred, scale)
+            extra.update(kept)
+        if not extra.get("tracked"):
             r = jax.device_get(full(q))
             conf, verdict = confidence_of(r, scale, cfg)
-            extra.update(rejected=reason)
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
         out.append(res)
     return out
+
+
+def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
+             pred: tuple[np.ndarray, np.ndarray], scale: float
+             ) -> tuple[LocalizeResult, float, str, dict[str, Any]]:
+    """The pose a tracking step keeps (host code): (result, confidence, verdict, fields)
+    with fields ``tracked``, ``by_check`` and ``rejected`` (:class:`TrackResult`). The
+    tracked pose if :func:`rejection` finds nothing against it; else the check pass's if
+    ``track.keep_check`` and it passes :func:`pose_rejection`; else ``tracked`` False (the
+    frame is to be localized in full)."""
+    tc = cfg.track
+    r, check = out
+    conf, verdict = confidence_of(r, scale, cfg)
+    agrees = appearance_agrees(m, q, r.retrieved, cfg)
+    reason = rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees, check)
+    if reason is None:
+        return r, conf, verdict, {"tracked": True}
+    if tc.keep_check and tc.max_disagreement > 0:
+        c_conf, c_verdict = confidence_of(check, scale, cfg)
+        if pose_rejection(check, c_verdict, cfg, agrees) is None:
+            return check, c_conf, c_verdict, {"tracked": True, "by_check": True,
+                                              "rejected": reason}
+    return r, conf, verdict, {"tracked": False, "rejected": reason}
 
 
 def confidence_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> tuple[float, str]:
