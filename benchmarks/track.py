@@ -128,6 +128,7 @@ def run_track(loc: Localizer, queries, idx: np.ndarray, progress: bool) -> dict:
             "latency_s": [tr.latency_s for tr in tracks],
             "tracked": [tr.tracked for tr in tracks],
             "by_check": [tr.by_check for tr in tracks],
+            "unconfirmed": [tr.unconfirmed for tr in tracks],
             "relocalized": [tr.relocalized for tr in tracks],
             "full_no_prior": [tr.error is None and not tr.attempted for tr in tracks],
             "flagged": [tr.error is not None for tr in tracks],
@@ -204,6 +205,7 @@ def summary_row(label: str, run: dict, scale: float) -> dict:
         wrong = (dt > WRONG_T * scale) | (dr > WRONG_R) | ~np.isfinite(dt)
         row.update(n_tracked=int(tr.sum()), n_relocalized=int(np.sum(run["relocalized"])),
                    n_by_check=int(np.sum(run.get("by_check", [False] * len(tr)))),
+                   n_unconfirmed=int(np.sum(run.get("unconfirmed", [False] * len(tr)))),
                    # poses more than 5% / 5 deg off that the result calls "localized"
                    n_wrong_localized=int(np.sum(wrong & (np.asarray(run["verdict"])
                                                          == "localized"))),

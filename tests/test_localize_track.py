@@ -242,3 +242,41 @@ def test_a_tracked_pose_its_own_matches_contradict_is_not_kept(loc, stream):
     assert not kept["tracked"] and "check pass" in kept["rejected"]
     with pytest.raises(VrsError, match="max_disagreement"):
         localize.TrackConfig(max_disagreement=-0.1)
+
+
+def test_an_unconfirmed_tracked_pose_is_kept_as_uncertain_only_where_full_fails(loc, stream):
+    """A tracked pose whose check pass finds no pose at all (nothing to agree or disagree
+    with) is not kept as "localized": the frame is localized in full, and only if that is
+    not "localized" either is the tracked pose kept, reported uncertain."""
+    import jax
+
+    from vrs_jax.localize.confidence import LOCALIZED_AT
+
+    m, cfg = loc.map, loc.cfg
+
+    def no_check(*a):  # the tracking step with a check pass that found no pose
+        out = track.track_step(*a)
+        return track.TrackStep(out.result, out.check.replace(success=False))
+
+    calls = []
+
+    def failed_full(q):  # full localization finds no pose from the fourth call on
+        calls.append(q)
+        r = jax.device_get(loc.localize_query(q))
+        return r if len(calls) <= 3 else r.replace(success=False, fallback=True)
+
+    idx = [0, 1, 2, 3, 4, 5]
+    paths = [stream.image_paths[i] for i in idx]
+    out = track.track_frames(m, cfg, paths, stream.K[0], None, loc.prepare,
+                             loc.localize_query, step=no_check)
+    for r in out[1:]:  # full localization localizes these frames: it is used
+        assert not r.tracked and not r.unconfirmed and r.relocalized
+    out = track.track_frames(m, cfg, paths, stream.K[0], None, loc.prepare, failed_full,
+                             step=no_check)
+    kept = [r for r in out if r.unconfirmed]
+    assert len(kept) >= 2, [(r.tracked, r.rejected) for r in out]
+    for r in kept:
+        i = idx[out.index(r)]
+        dt, dr = _errors(r, stream, i)
+        assert r.tracked and r.verdict == "uncertain" and r.confidence < LOCALIZED_AT
+        assert dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)

@@ -244,7 +244,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                                                   strict=True)]
     if tracks is not None:
         for pq, tr in zip(summary["per_query"], tracks, strict=True):
-            pq.update(tracked=tr.tracked, by_check=tr.by_check, relocalized=tr.relocalized,
+            pq.update(tracked=tr.tracked, by_check=tr.by_check, unconfirmed=tr.unconfirmed,
+                      relocalized=tr.relocalized,
                       latency_s=round(tr.latency_s, 4), rejected=tr.rejected)
         summary["tracking"] = tracking_counts(tracks)
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))

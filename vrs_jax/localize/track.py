@@ -47,13 +47,14 @@ from vrs_jax import geometry
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import stages as st
-from vrs_jax.localize.confidence import map_scale, pose_confidence, result_fields
+from vrs_jax.localize.confidence import LOCALIZED_AT, map_scale, pose_confidence, result_fields
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map
 
 Array = Any
+UNCERTAIN_BELOW = float(np.nextafter(LOCALIZED_AT, 0.0))  # the largest "uncertain" confidence
 
 
 # ----------------------------------------------------------------------------- prediction
@@ -340,6 +341,9 @@ class TrackResult:
     rejected: why the tracking pass's pose was not kept (None if kept or not attempted);
     by_check: the pose kept is the check pass's (:func:`check_pass`; the tracking pass's
     was rejected, ``rejected`` says why), tracked all the same (no full localization);
+    unconfirmed: the tracked pose passed every test but the check pass, which found no pose
+    at all, and the frame's full localization was not "localized" either: the tracked pose
+    is kept, its verdict "uncertain" (confidence capped below the localized threshold);
     confidence, verdict: the pose confidence (localize.confidence) of the pose returned;
     latency_s: wall seconds of the frame (reading, preparation, tracking and any full
     localization); R_pred, t_pred: the prediction (None without one); error: why the frame
@@ -368,6 +372,7 @@ class TrackResult:
     centre_std_first: float = float("nan")
     tracked: bool = False
     by_check: bool = False
+    unconfirmed: bool = False
     attempted: bool = False
     rejected: str | None = None
     confidence: float = 0.0
@@ -514,8 +519,15 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
             r, conf, verdict, kept = accepted(m, q, cfg, out_step, pred, scale)
             extra.update(kept)
         if not extra.get("tracked"):
+            tracked = (r, conf) if extra.get("unconfirmed") else None
             r = jax.device_get(full(q))
             conf, verdict = confidence_of(r, scale, cfg)
+            if tracked is not None and verdict != "localized":
+                # the full localization did no better: the unconfirmed tracked pose, uncertain
+                r, conf, verdict = tracked[0], min(tracked[1], UNCERTAIN_BELOW), "uncertain"
+                extra.update(tracked=True)
+            else:
+                extra.update(unconfirmed=False)
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
@@ -527,10 +539,12 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
              pred: tuple[np.ndarray, np.ndarray], scale: float
              ) -> tuple[LocalizeResult, float, str, dict[str, Any]]:
     """The pose a tracking step keeps (host code): (result, confidence, verdict, fields)
-    with fields ``tracked``, ``by_check`` and ``rejected`` (:class:`TrackResult`). The
-    tracked pose if :func:`rejection` finds nothing against it; else the check pass's if
-    ``track.keep_check`` and it passes :func:`pose_rejection`; else ``tracked`` False (the
-    frame is to be localized in full)."""
+    with fields ``tracked``, ``by_check``, ``rejected`` and ``unconfirmed``
+    (:class:`TrackResult`). The tracked pose if :func:`rejection` finds nothing against it;
+    else the check pass's if ``track.keep_check`` and it passes :func:`pose_rejection`;
+    else ``tracked`` False (the frame is to be localized in full), with ``unconfirmed``
+    True when only the check failed, by finding no pose (then the tracked pose, reported
+    uncertain, is kept if the full localization is not "localized" either)."""
     tc = cfg.track
     r, check = out
     conf, verdict = confidence_of(r, scale, cfg)
@@ -543,7 +557,11 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
         if pose_rejection(check, c_verdict, cfg, agrees) is None:
             return check, c_conf, c_verdict, {"tracked": True, "by_check": True,
                                               "rejected": reason}
-    return r, conf, verdict, {"tracked": False, "rejected": reason}
+    # only unconfirmed: the check pass found no pose to agree or disagree with
+    unconfirmed = (tc.max_disagreement > 0 and not bool(check.success)
+                   and rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees) is None)
+    return r, conf, verdict, {"tracked": False, "rejected": reason,
+                              "unconfirmed": unconfirmed}
 
 
 def confidence_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> tuple[float, str]:
