@@ -192,7 +192,7 @@ def test_named_localize_config_comments_match_values():
             cpu.early_exit_inliers, cpu.render_chunk, cpu.guided_radius,
             cpu.guided_threshold_px, cpu.pnp.threshold_px, cpu.probe_grid,
             cpu.first_pass_keypoints, cpu.guided_reuse_inliers, cpu.guided_keypoints) == (
-        5, 1024, True, 32, 8, 1, ("render",), 2, 30, 2048, 4.0, 2.0, 6.0, 2, 128, True, 192)
+        5, 1024, True, 32, 8, 1, ("render",), 2, 24, 2048, 4.0, 2.0, 6.0, 2, 128, True, 96)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 
