@@ -270,10 +270,10 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # scan24 and fern, lego 1 query more within 1%, the walk 1 fewer within 1% and 1 more
     # within 2% (2 poses more than 5% off instead of 5, none reported localized instead of
     # 1); 143-218 k NeRF evaluations per query instead of 179-285 k, render / real time per
-    # query with preparation 3.2-3.7x instead of 3.6-4.6x (lego 5.3x instead of 6.7x).
-    # 128 first-pass keypoints are kept: 96 (with the 96-point guided budget) lost the walk
-    # 3 more queries within 1%. The
-    # earlier setting (192, 30; 48 samples before that), measured with benchmarks.localize
+    # query with preparation 3.1-3.5x instead of 3.7-4.3x (lego 5.4x instead of 6.4x; README,
+    # "Render budget"). 128 first-pass keypoints are kept: 96 (with the 96-point guided
+    # budget) lost the walk 3 more queries within 1%. The earlier setting (192, 30; 48
+    # samples before that), measured with benchmarks.localize
     # on the synthetic room, fern, lego, scan24 and fox together against the previous
     # setting (48 samples on every ray, every keypoint, an unbounded guided pass: 0.9-2.1 M
     # evaluations per query): 0.18-0.30 M evaluations, recall at 1% / 1 deg 35 of 37 real
