@@ -33,6 +33,19 @@ def pairwise_distances(a, b):
     return jnp.sqrt(jnp.maximum(d2, 0.0))
 
 
+def planar_sq_distances(a, b):
+    """[Na, 2], [Nb, 2] -> [Na, Nb] squared distances between image points.
+
+    Written per coordinate, not as a sum over a trailing axis of 2: XLA on CPU lowers the
+    latter (broadcast, square, reduce over 2) to a kernel about ten times slower than these
+    two elementwise terms (1024 x 1280 points: ~24 ms against ~2 ms on two cores)."""
+    a = jnp.asarray(a, jnp.float32)
+    b = jnp.asarray(b, jnp.float32)
+    dx = a[:, None, 0] - b[None, :, 0]
+    dy = a[:, None, 1] - b[None, :, 1]
+    return dx * dx + dy * dy
+
+
 @functools.partial(jax.jit, static_argnames="mutual")
 def match(desc_q, mask_q, desc_r, mask_r, ratio: float | None = DEFAULT_RATIO,
           mutual: bool = True, max_dist: float | None = None):
@@ -108,7 +121,7 @@ def guided_match(uv_q, desc_q, mask_q, uv_r, desc_r, mask_r, group_r, radius: fl
     inf = jnp.float32(jnp.inf)
     uv_q = jnp.asarray(uv_q, jnp.float32)
     uv_r = jnp.asarray(uv_r, jnp.float32)
-    near = jnp.sum((uv_q[:, None, :] - uv_r[None, :, :]) ** 2, -1) < jnp.float32(radius) ** 2
+    near = planar_sq_distances(uv_q, uv_r) < jnp.float32(radius) ** 2
     ok = near & jnp.asarray(mask_q, bool)[:, None] & jnp.asarray(mask_r, bool)[None, :]
     d = jnp.where(ok, pairwise_distances(desc_q, desc_r), inf)  # [Nq, Nr]
     idx = jnp.argmin(d, axis=1).astype(jnp.int32)

@@ -33,7 +33,7 @@ from vrs_jax import geometry
 from vrs_jax.egm.retrieval import topk
 from vrs_jax.errors import VrsError
 from vrs_jax.features.descriptor import describe as describe_patches
-from vrs_jax.features.matching import guided_match, match
+from vrs_jax.features.matching import guided_match, match, planar_sq_distances
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.pnp import PnPConfig, inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
@@ -379,7 +379,7 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 def near_any(uv: Array, uv_q: Array, mask_q: Array, radius: float) -> Array:
     """[N] bool: some valid query keypoint (uv_q [Nq, 2], mask_q [Nq]) lies within
     ``radius`` pixels of uv [N, 2]."""
-    d2 = jnp.sum((uv[:, None, :] - uv_q[None, :, :]) ** 2, -1)
+    d2 = planar_sq_distances(uv, uv_q)
     return jnp.any((d2 < jnp.float32(radius) ** 2) & mask_q[None, :], axis=1)
 
 
