@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vrs_jax.features import matching
-from vrs_jax.features.matching import match, match_jit, pairwise_distances
+from vrs_jax.features.matching import match, match_jit, pairwise_distances, planar_sq_distances
 
 
 def _ref(dq, mq, dr, mr, ratio, mutual, max_dist=None):
@@ -133,6 +133,16 @@ def test_pairwise_distances():
     np.testing.assert_allclose(np.asarray(pairwise_distances(a, b)), ref, rtol=1e-5)
     # self-distances: float32 cancellation leaves sqrt(eps * 2 |a|^2) ~ 1e-3 for |a|^2 ~ 7
     assert float(np.asarray(pairwise_distances(a, a)).diagonal().max()) < 4e-3
+
+
+def test_planar_sq_distances():
+    rng = np.random.default_rng(4)
+    a, b = rng.uniform(0, 640, size=(9, 2)), rng.uniform(0, 640, size=(11, 2))
+    ref = np.sum((a[:, None] - b[None]) ** 2, axis=-1)
+    got = np.asarray(jax.jit(planar_sq_distances)(a, b))
+    assert got.shape == (9, 11)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-2)
+    assert np.asarray(planar_sq_distances(a, a)).diagonal().max() == 0.0
 
 
 def _guided_reference(uv_q, dq, mq, uv_r, dr, mr, gr, radius, ratio):
