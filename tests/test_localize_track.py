@@ -197,6 +197,14 @@ def test_tracked_pose_needs_references_its_appearance_retrieves(loc, stream):
     eye, zero = np.asarray(r.R, np.float64), np.asarray(r.t, np.float64)
     assert track.rejection(r, "localized", eye, zero, 1.0, cfg, agrees=True) is None
     assert "appearance" in track.rejection(r, "localized", eye, zero, 1.0, cfg, agrees=False)
+    # a verdict that rejects names the confidence's weakest test (summary.json "rejected")
+    from vrs_jax.localize.confidence import confidence_scores, result_fields
+
+    scores = confidence_scores(result_fields([r]), 1.0, cfg.confidence)
+    weak = track.weakest_of(r, 1.0, cfg)
+    assert weak == min(scores, key=lambda k: float(scores[k][0]))
+    assert track.rejection(r, "uncertain", eye, zero, 1.0, cfg, agrees=True, weakest=weak) \
+        == f"confidence verdict uncertain (weakest test: {weak})"
     with pytest.raises(VrsError):
         localize.TrackConfig(min_retrieval_overlap=-1)
 

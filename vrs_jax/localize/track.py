@@ -47,7 +47,13 @@ from vrs_jax import geometry
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import stages as st
-from vrs_jax.localize.confidence import LOCALIZED_AT, map_scale, pose_confidence, result_fields
+from vrs_jax.localize.confidence import (
+    LOCALIZED_AT,
+    map_scale,
+    pose_confidence,
+    result_fields,
+    weakest_test,
+)
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query
 from vrs_jax.localize.stages import LocalizeResult
@@ -285,16 +291,17 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
 
 
 def pose_rejection(r: LocalizeResult, verdict: str, cfg: LocalizeConfig,
-                   agrees: bool = True) -> str | None:
+                   agrees: bool = True, weakest: str | None = None) -> str | None:
     """Why a pose of a tracking step is not kept on its own merits (None: kept): no pose, a
-    verdict other than "localized", fewer than ``track.min_inliers`` inliers, or
-    references that the frame's appearance does not retrieve (``agrees`` False:
-    :func:`appearance_agrees`)."""
+    verdict other than "localized" (naming the confidence's ``weakest`` test when given),
+    fewer than ``track.min_inliers`` inliers, or references that the frame's appearance
+    does not retrieve (``agrees`` False: :func:`appearance_agrees`)."""
     tc = cfg.track
     if not bool(r.success):
         return "the tracking pass found no pose"
     if verdict != "localized":
-        return f"confidence verdict {verdict}"
+        return f"confidence verdict {verdict}" + (
+            f" (weakest test: {weakest})" if weakest else "")
     if int(r.n_inliers) < tc.min_inliers:
         return f"{int(r.n_inliers)} inliers, fewer than {tc.min_inliers}"
     if not agrees:
@@ -305,14 +312,14 @@ def pose_rejection(r: LocalizeResult, verdict: str, cfg: LocalizeConfig,
 
 def rejection(r: LocalizeResult, verdict: str, R_pred: np.ndarray, t_pred: np.ndarray,
               scale: float, cfg: LocalizeConfig, agrees: bool = True,
-              check: LocalizeResult | None = None) -> str | None:
+              check: LocalizeResult | None = None, weakest: str | None = None) -> str | None:
     """Why a tracked pose is not kept (None: kept): :func:`pose_rejection`, a jump from the
     prediction beyond ``track.max_jump`` (fraction of the scene ``scale``) or
     ``track.max_jump_deg``, or a check pass (``check``, :func:`check_pass`; None: not
     checked) without a pose or farther from the tracked pose than ``track.max_disagreement``
     or ``track.max_disagreement_deg``."""
     tc = cfg.track
-    reason = pose_rejection(r, verdict, cfg, agrees)
+    reason = pose_rejection(r, verdict, cfg, agrees, weakest)
     if reason is not None:
         return reason
     dt, dr = jump(r.R, r.t, R_pred, t_pred)
@@ -549,7 +556,8 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
     r, check = out
     conf, verdict = confidence_of(r, scale, cfg)
     agrees = appearance_agrees(m, q, r.retrieved, cfg)
-    reason = rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees, check)
+    reason = rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees, check,
+                       weakest_of(r, scale, cfg))
     if reason is None:
         return r, conf, verdict, {"tracked": True}
     if tc.keep_check and tc.max_disagreement > 0:
@@ -562,6 +570,12 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
                    and rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees) is None)
     return r, conf, verdict, {"tracked": False, "rejected": reason,
                               "unconfirmed": unconfirmed}
+
+
+def weakest_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> str:
+    """The lowest-scoring test of one result's confidence (localize.confidence.weakest_test;
+    "pnp" where it has no pose)."""
+    return str(weakest_test(result_fields([r]), scale, cfg.confidence)[0])
 
 
 def confidence_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> tuple[float, str]:
