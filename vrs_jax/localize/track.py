@@ -556,8 +556,8 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
     r, check = out
     conf, verdict = confidence_of(r, scale, cfg)
     agrees = appearance_agrees(m, q, r.retrieved, cfg)
-    reason = rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees, check,
-                       weakest_of(r, scale, cfg))
+    weakest = weakest_of(r, scale, cfg) if verdict != "localized" else None
+    reason = rejection(r, verdict, pred[0], pred[1], scale, cfg, agrees, check, weakest)
     if reason is None:
         return r, conf, verdict, {"tracked": True}
     if tc.keep_check and tc.max_disagreement > 0:
