@@ -387,7 +387,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
     ``localize_s_per_query`` (sum of the median stage times), ``wall_s``, ``measured_at``,
     ``reused`` and ``record``.
     """
-    from vrs_jax.eval.report import summarize
+    from vrs_jax.eval.report import median_evals, summarize
     from vrs_jax.localize import STAGE_NAMES
     from vrs_jax.localize.batch import localize_scene, rays_rendered
     from vrs_jax.localize.render import nerf_evals_per_ray
@@ -428,6 +428,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
             s["timing_s"] = {**s["timing_s"], "guided": 0.0}
             s["rays_per_query"] = rays_rendered(ctx.m, cfg1, first)
             s["nerf_evals_per_query"] = s["rays_per_query"] * nerf_evals_per_ray(ctx.m, cfg1)
+            s["nerf_evals_per_query_median"] = median_evals(ctx.m, cfg1, first)
         s["localize_s_per_query"] = float(sum(s["timing_s"][k] or 0.0 for k in STAGE_NAMES))
         s["wall_s"] = wall
         s["measured_at"] = now()

@@ -77,6 +77,9 @@ def test_localize_benchmark_json(localize_doc, loaded):
             assert 0 < r["nerf_evals_per_query"] < r["full_image_evals_per_query"]
             assert r["nerf_evals_per_query"] == pytest.approx(
                 expect * (cfg["narrow_samples"] + cfg["narrow_fine"]))
+            assert r["nerf_evals_per_query_median"] == pytest.approx(
+                np.median(rendered) * r["patch_size"] ** 2
+                * (cfg["narrow_samples"] + cfg["narrow_fine"]))
             assert r["timing_s"]["render"] > 0
         elif r["mode"] == "real":
             assert r["rays_per_query"] == 0 and r["timing_s"]["render"] == 0

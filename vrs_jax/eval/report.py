@@ -9,8 +9,10 @@ import numpy as np
 
 from vrs_jax.data.scene import Scene
 from vrs_jax.eval import metrics
+from vrs_jax.localize.batch import rays_rendered
 from vrs_jax.localize.confidence import result_verdicts
 from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.localize.render import nerf_evals_per_ray
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map, map_bytes
 
@@ -48,6 +50,7 @@ def summarize(queries: Scene, results: list[LocalizeResult | None], info: dict, 
                 "timing_s": info["timing_s"],
                 "rays_per_query": info["rays_per_query"],
                 "nerf_evals_per_query": info["nerf_evals_per_query"],
+                "nerf_evals_per_query_median": median_evals(m, cfg, results),
                 "full_image_evals_per_query": info.get("full_image_evals_per_query", 0.0),
                 "n_success": info["n_success"],
                 "n_fallback": int(sum(bool(r.fallback) for r in done)),
@@ -63,3 +66,11 @@ def verdict_counts(verdict) -> dict[str, int]:
     """``n_localized``, ``n_uncertain``, ``n_failed`` of an array of verdicts."""
     v = np.asarray(verdict, object)
     return {f"n_{k}": int(np.sum(v == k)) for k in ("localized", "uncertain", "failed")}
+
+
+def median_evals(m: Map, cfg: LocalizeConfig, results: list[LocalizeResult | None]) -> float:
+    """Median NeRF evaluations per query over the queries with a result (0 in real-patch
+    mode; the summary's ``nerf_evals_per_query`` is the mean)."""
+    if cfg.source != "render":
+        return 0.0
+    return rays_rendered(m, cfg, results, np.median) * nerf_evals_per_ray(m, cfg)

@@ -90,14 +90,14 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
     return results, info
 
 
-def rays_rendered(m: Map, cfg: LocalizeConfig, results: Sequence[LocalizeResult | None]
-                  ) -> float:
-    """Mean patch rays rendered per query (``n_rendered`` x rays per patch) over the queries
-    with a result; 0 in real-patch mode."""
+def rays_rendered(m: Map, cfg: LocalizeConfig, results: Sequence[LocalizeResult | None],
+                  stat: Callable[[Any], Any] = np.mean) -> float:
+    """Patch rays rendered per query (``n_rendered`` x rays per patch), their mean (or
+    ``stat``, e.g. np.median) over the queries with a result; 0 in real-patch mode."""
     counts = [int(r.n_rendered) for r in results if r is not None]
     if cfg.source != "render" or not counts:
         return 0.0
-    return float(np.mean(counts) * rays_per_patch(m, cfg))
+    return float(stat(counts) * rays_per_patch(m, cfg))
 
 
 # ----------------------------------------------------------------------------- batches
