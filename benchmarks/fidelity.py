@@ -31,6 +31,10 @@ stored at half precision):
   - surface depth: at each keypoint's centre ray, the field's rendered depth (the map's full
     coarse + fine sampler) over the keypoint's 3D point depth, and how often it lies inside
     the localizer's depth window (+- ``depth_margin``), where depth-guided rendering samples;
+  - the own-keypoint rate by the keypoint's 3D point depth, in units of the scene's scale
+    (the median camera distance to the cameras' centroid, as the localization benchmarks'
+    "% of the scale"): near (< 1), mid (1-4), far (>= 4) -- where a field of fixed size
+    spends too little resolution shows here (the phone walk's near points);
   - NeRF map bytes (the .npz as saved, float32 and float16), parameters, training steps/s
     (after compilation) and seconds, evaluation seconds.
 Prints a table and writes JSON.
@@ -194,10 +198,26 @@ def make_evaluator(lcfg, features):
         correct = valid & (j == jnp.arange(mask.shape[0]))
         return {"se": se, "own": own & mask, "matches": jnp.sum(valid),
                 "correct": jnp.sum(correct), "mask": mask, "d_real": d_real,
-                "depth_ratio": rend_z / jnp.maximum(z, 1e-6),
+                "depth_ratio": rend_z / jnp.maximum(z, 1e-6), "depth": z,
                 "linked": mask & (egm.point_idx[i] >= 0)}
 
     return jax.jit(one)
+
+
+# Depth bins of the own-keypoint rate, in units of the scene's scale (module docstring).
+DEPTH_BINS = (("near", 0.0, 1.0), ("mid", 1.0, 4.0), ("far", 4.0, np.inf))
+
+
+def rate_by_depth(own: np.ndarray, depth: np.ndarray, scale: float) -> dict[str, Any]:
+    """Own-keypoint rate per depth bin: own [K] bool, depth [K] point depths (world), scale
+    -> {bin: {"rate": float or None (empty bin), "keypoints": int}}."""
+    d = np.asarray(depth, np.float64) / scale
+    out = {}
+    for name, lo, hi in DEPTH_BINS:
+        s = (d >= lo) & (d < hi)
+        out[name] = {"rate": float(np.mean(own[s])) if s.any() else None,
+                     "keypoints": int(s.sum())}
+    return out
 
 
 def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[str, Any]:
@@ -205,9 +225,12 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
     import jax
     from tqdm.auto import tqdm
 
+    from vrs_jax import geometry
+    from vrs_jax.eval.metrics import scene_scale
+
     egm = m.egm
     fn = make_evaluator(lcfg, m.config.features)
-    se, own, n_kp, n_match, n_corr, desc_err, ratio = [], [], 0, 0, 0, 0.0, []
+    se, own, n_kp, n_match, n_corr, desc_err, ratio, depth = [], [], 0, 0, 0, 0.0, [], []
     t0 = time.perf_counter()
     for i in tqdm(views, desc="fidelity", unit="view", disable=not progress):
         out = jax.device_get(fn(m, int(i), grays[int(i)]))
@@ -215,6 +238,7 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
         se.append(out["se"][m_])
         own.append(out["own"][m_])
         ratio.append(out["depth_ratio"][np.asarray(out["linked"], bool)])
+        depth.append(out["depth"][m_])
         n_kp += int(m_.sum())
         n_match += int(out["matches"])
         n_corr += int(out["correct"])
@@ -227,6 +251,7 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
     n_views = len(views)
     patch_psnr = -10 * np.log10(np.maximum(se_all, 1e-10))
     ratio_all = np.concatenate(ratio)
+    scale = scene_scale(np.asarray(geometry.camera_center(np.asarray(egm.R), np.asarray(egm.t))))
     return {"patch_psnr_db": float(-10 * np.log10(max(se_all.mean(), 1e-10))),
             "patch_psnr_median_db": float(np.median(patch_psnr)),
             "own_keypoint_rate": float(own_all.mean()),
@@ -239,6 +264,8 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
             "surface_in_window_rate": float(np.mean(np.abs(ratio_all - 1.0)
                                                     <= lcfg.depth_margin)) if len(ratio_all)
             else float("nan"),
+            "own_keypoint_rate_by_depth": rate_by_depth(own_all, np.concatenate(depth), scale),
+            "scene_scale": scale,
             "real_desc_vs_baseline_max_abs": desc_err,
             "eval_s": time.perf_counter() - t0}
 
@@ -316,18 +343,20 @@ def run(args) -> dict[str, Any]:
     row = {"label": label, "overrides": overrides, "params": count_params(ilm.fields.params),
            "ilm_bytes": bytes32, "ilm_bytes_float16": bytes16, **train_info,
            "float32": res32, "float16": res16}
-    headers = ["field", "params", "MB", "evals/patch", "PSNR dB", "med dB", "own %", "match",
-               "correct", "surface in window %", "steps/s", "train s"]
+    headers = ["field", "params", "MB", "evals/patch", "PSNR dB", "med dB", "own %",
+               "own % near/mid/far", "match", "correct", "surface in window %", "steps/s",
+               "train s"]
     rows = [[label, row["params"], f"{bytes32 / 1e6:.3f}", f"{evals_per_patch(m, lcfg):.0f}",
              f"{res32['patch_psnr_db']:.2f}",
              f"{res32['patch_psnr_median_db']:.2f}", f"{100 * res32['own_keypoint_rate']:.1f}",
-             f"{res32['matches_per_view']:.1f}", f"{res32['correct_matches_per_view']:.1f}",
+             depth_cell(res32), f"{res32['matches_per_view']:.1f}",
+             f"{res32['correct_matches_per_view']:.1f}",
              f"{100 * res32['surface_in_window_rate']:.1f}",
              fmt(train_info["steps_per_s"], 1), fmt(train_info["train_s"], 0)]]
     if res16 is not None:
         rows.append([label + " (fp16)", row["params"], f"{bytes16 / 1e6:.3f}", "",
                      f"{res16['patch_psnr_db']:.2f}", f"{res16['patch_psnr_median_db']:.2f}",
-                     f"{100 * res16['own_keypoint_rate']:.1f}",
+                     f"{100 * res16['own_keypoint_rate']:.1f}", depth_cell(res16),
                      f"{res16['matches_per_view']:.1f}",
                      f"{res16['correct_matches_per_view']:.1f}",
                      f"{100 * res16['surface_in_window_rate']:.1f}", "", ""])
@@ -348,6 +377,13 @@ def run(args) -> dict[str, Any]:
     write_json(args.json, doc)
     log(f"wrote {args.json}")
     return doc
+
+
+def depth_cell(res: dict[str, Any]) -> str:
+    """'near/mid/far' own-keypoint rates (%) of an evaluate() result; '-' for an empty bin."""
+    by = res["own_keypoint_rate_by_depth"]
+    return "/".join("-" if by[b]["rate"] is None else f"{100 * by[b]['rate']:.0f}"
+                    for b, _, _ in DEPTH_BINS)
 
 
 def evals_per_patch(m, lcfg) -> float:

@@ -349,6 +349,12 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
             <= f["keypoints_per_view"]
         assert 0.0 <= f["surface_in_window_rate"] <= 1.0
         assert f["surface_depth_ratio_median"] > 0
+        by = f["own_keypoint_rate_by_depth"]
+        n = [by[b]["keypoints"] for b in ("near", "mid", "far")]
+        assert sum(n) == round(3 * f["keypoints_per_view"]) and f["scene_scale"] > 0
+        # the bins' rates recombine to the overall rate
+        assert sum(by[b]["rate"] * by[b]["keypoints"] for b in by if by[b]["keypoints"]) \
+            == pytest.approx(f["own_keypoint_rate"] * sum(n))
     # the real patches are read and described as the baseline map's descriptors were: the
     # same up to the map's storage (keypoints quantised to 1/32 px, angle to pi/256, scale to
     # 1/256 of its log range; a patch read elsewhere differs by ~0.3 somewhere)
@@ -357,6 +363,18 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
     assert r["float32"]["keypoints_per_view"] == pytest.approx(
         mean_valid[np.unique(np.round(np.linspace(0, len(mean_valid) - 1, 3))
                                       .astype(int))].mean())
+
+
+def test_fidelity_rate_by_depth_bins_in_scene_scale_units():
+    from benchmarks.fidelity import rate_by_depth
+
+    own = np.array([True, False, True, True, False, False])
+    depth = np.array([0.5, 1.5, 2.5, 7.9, 8.0, 100.0])  # scale 2: 0.25, .75 | 1.25, 3.95 | 4, 50
+    by = rate_by_depth(own, depth, 2.0)
+    assert by["near"] == {"rate": 0.5, "keypoints": 2}
+    assert by["mid"] == {"rate": 1.0, "keypoints": 2}
+    assert by["far"] == {"rate": 0.0, "keypoints": 2}
+    assert rate_by_depth(own[:1], depth[:1], 2.0)["far"] == {"rate": None, "keypoints": 0}
 
 
 def test_track_benchmark_json_and_plot(tiny_map, stream_scene, tmp_path):
