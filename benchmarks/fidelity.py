@@ -31,10 +31,10 @@ stored at half precision):
   - surface depth: at each keypoint's centre ray, the field's rendered depth (the map's full
     coarse + fine sampler) over the keypoint's 3D point depth, and how often it lies inside
     the localizer's depth window (+- ``depth_margin``), where depth-guided rendering samples;
-  - the own-keypoint rate by the keypoint's 3D point depth, in units of the scene's scale
-    (the median camera distance to the cameras' centroid, as the localization benchmarks'
-    "% of the scale"): near (< 1), mid (1-4), far (>= 4) -- where a field of fixed size
-    spends too little resolution shows here (the phone walk's near points);
+  - the own-keypoint rate (and the surface-in-window rate) by the keypoint's 3D point depth,
+    in units of the scene's scale (the median camera distance to the cameras' centroid, as
+    the localization benchmarks' "% of the scale"): near (< 1), mid (1-4), far (>= 4) --
+    where a field of fixed size spends too little resolution shows here;
   - NeRF map bytes (the .npz as saved, float32 and float16), parameters, training steps/s
     (after compilation) and seconds, evaluation seconds.
 Prints a table and writes JSON.
@@ -208,14 +208,15 @@ def make_evaluator(lcfg, features):
 DEPTH_BINS = (("near", 0.0, 1.0), ("mid", 1.0, 4.0), ("far", 4.0, np.inf))
 
 
-def rate_by_depth(own: np.ndarray, depth: np.ndarray, scale: float) -> dict[str, Any]:
-    """Own-keypoint rate per depth bin: own [K] bool, depth [K] point depths (world), scale
-    -> {bin: {"rate": float or None (empty bin), "keypoints": int}}."""
+def rate_by_depth(hit: np.ndarray, depth: np.ndarray, scale: float) -> dict[str, Any]:
+    """Rate of a per-keypoint test per depth bin: hit [K] bool (e.g. own keypoint), depth [K]
+    point depths (world), scale -> {bin: {"rate": float or None (empty bin), "keypoints":
+    int}}."""
     d = np.asarray(depth, np.float64) / scale
     out = {}
     for name, lo, hi in DEPTH_BINS:
         s = (d >= lo) & (d < hi)
-        out[name] = {"rate": float(np.mean(own[s])) if s.any() else None,
+        out[name] = {"rate": float(np.mean(hit[s])) if s.any() else None,
                      "keypoints": int(s.sum())}
     return out
 
@@ -230,14 +231,17 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
 
     egm = m.egm
     fn = make_evaluator(lcfg, m.config.features)
-    se, own, n_kp, n_match, n_corr, desc_err, ratio, depth = [], [], 0, 0, 0, 0.0, [], []
+    se, own, n_kp, n_match, n_corr, desc_err = [], [], 0, 0, 0, 0.0
+    ratio, depth, linked_depth = [], [], []
     t0 = time.perf_counter()
     for i in tqdm(views, desc="fidelity", unit="view", disable=not progress):
         out = jax.device_get(fn(m, int(i), grays[int(i)]))
         m_ = np.asarray(out["mask"], bool)
         se.append(out["se"][m_])
         own.append(out["own"][m_])
-        ratio.append(out["depth_ratio"][np.asarray(out["linked"], bool)])
+        linked = np.asarray(out["linked"], bool)
+        ratio.append(out["depth_ratio"][linked])
+        linked_depth.append(out["depth"][linked])
         depth.append(out["depth"][m_])
         n_kp += int(m_.sum())
         n_match += int(out["matches"])
@@ -265,6 +269,9 @@ def evaluate(m, views: np.ndarray, lcfg, grays: dict, progress: bool) -> dict[st
                                                     <= lcfg.depth_margin)) if len(ratio_all)
             else float("nan"),
             "own_keypoint_rate_by_depth": rate_by_depth(own_all, np.concatenate(depth), scale),
+            "surface_in_window_rate_by_depth": rate_by_depth(
+                np.abs(ratio_all - 1.0) <= lcfg.depth_margin, np.concatenate(linked_depth),
+                scale),
             "scene_scale": scale,
             "real_desc_vs_baseline_max_abs": desc_err,
             "eval_s": time.perf_counter() - t0}

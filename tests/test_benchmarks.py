@@ -355,6 +355,8 @@ def test_fidelity_benchmark_on_the_tiny_map(tiny_map, loaded, tmp_path):
         # the bins' rates recombine to the overall rate
         assert sum(by[b]["rate"] * by[b]["keypoints"] for b in by if by[b]["keypoints"]) \
             == pytest.approx(f["own_keypoint_rate"] * sum(n))
+        win = f["surface_in_window_rate_by_depth"]
+        assert sum(win[b]["keypoints"] for b in win) == sum(n)
     # the real patches are read and described as the baseline map's descriptors were: the
     # same up to the map's storage (keypoints quantised to 1/32 px, angle to pi/256, scale to
     # 1/256 of its log range; a patch read elsewhere differs by ~0.3 somewhere)
