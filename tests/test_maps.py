@@ -289,3 +289,37 @@ def test_upgrade_rewrites_a_format2_map(tmp_path):
     assert upgrade.main([str(tmp_path / "new"), str(tmp_path / "x")]) == 2  # not format 2
     (old / "egm.npz").write_bytes(b"tampered")
     assert upgrade.main([str(old), str(tmp_path / "y")]) == 2
+
+
+def test_train_egm_from_reuses_the_egm_and_trains_another_nerf(tiny_map, small_synthetic_scene,
+                                                               tmp_path, capsys):
+    """``experiments.train --egm-from`` copies another map's EGM (same dataset, split and EGM
+    settings) and trains a NeRF of other settings on it; other EGM settings, another split or
+    a folder that is not a map are refused in one line, and nothing is written then."""
+    from vrs_jax.cli.train import main
+
+    out = tmp_path / "other_nerf"
+    args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--config", "test",
+            "--quiet", "--out", str(out), "--egm-from", str(tiny_map)]
+    assert main([*args, "--set", "net_width=32", "--steps", "5"]) == 0
+    assert "EGM taken from" in capsys.readouterr().out
+    src, new = maps.load_map(tiny_map), maps.load_map(out)
+    for name in ("points3d", "point_idx", "keypoints", "R", "t", "global_desc"):
+        np.testing.assert_allclose(np.asarray(getattr(new.egm, name)),
+                                   np.asarray(getattr(src.egm, name)), rtol=1e-6, atol=1e-7)
+    assert new.config.egm == src.config.egm
+    assert new.config.nerf.net_width == 32 and new.config.nerf.max_steps == 5
+    assert new.ilm.config.net_width == 32
+    assert maps.read_stats(out)["egm_from"] == str(tiny_map.resolve())
+    # a re-run of the same command resumes the map in --out (nothing is taken again)
+    assert main([*args, "--set", "net_width=32", "--steps", "5"]) == 0
+    assert "EGM taken from" not in capsys.readouterr().out
+    # refused: other EGM settings, another split, not a map; no folder is left behind
+    for extra, why in ((["--config", "cpu-small"], "EGM settings"),
+                       (["--downscale", "2"], "another dataset, split or reader options"),
+                       (["--egm-from", str(tmp_path)], "not a vrs-jax map")):
+        bad = tmp_path / f"refused_{len(extra[1])}"
+        cmd = [a if a != str(out) else str(bad) for a in args] + extra
+        assert main(cmd) != 0
+        assert why in capsys.readouterr().err
+        assert not (bad / "map.json").exists()

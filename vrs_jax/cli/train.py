@@ -2,6 +2,7 @@
 
     python -m experiments.train --format F --root DIR --out MAPDIR [--config C]
         [--downscale N] [--query-every N] [--steps N] [--minutes M] [--set KEY=VALUE]
+        [--egm-from MAPDIR]
 
 The reference images (the dataset's training split, or all but every N-th image) are mapped:
 SIFT keypoints, covisible pairs matched and verified, 3D points triangulated with the known
@@ -55,6 +56,10 @@ def build_parser(fmt: str | None = None, default_config: str = "cpu-small",
                         "config's; a larger value continues a finished map)")
     p.add_argument("--minutes", type=positive_float("minutes"), default=None,
                    help="wall-clock cap on this run's NeRF training (re-run to continue)")
+    p.add_argument("--egm-from", default=None, metavar="MAPDIR",
+                   help="take the EGM of this map (same dataset, split and EGM settings; any "
+                        "NeRF) instead of building it: trains a NeRF of other settings into "
+                        "--out without repeating features, matching and triangulation")
     p.add_argument("--clusters", type=count_at_least(1), default=None,
                    help="number of NeRF clusters (default: the config's)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -112,6 +117,9 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
         if primary:
             print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
                   f"reference and {int(scene.is_query.sum())} query images")
+        if primary and args.egm_from and maps.seed_from(args.egm_from, out, scene, cfg,
+                                                        scene_opts(args)):
+            print(f"EGM taken from {args.egm_from}")
         maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
                        source_options=scene_opts(args), primary=primary)
         if primary:

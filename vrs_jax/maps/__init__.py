@@ -7,7 +7,7 @@
 Stage order: data -> features -> egm / nerf -> **maps** -> localize -> eval.
 """
 
-from vrs_jax.maps.build import build_map
+from vrs_jax.maps.build import build_map, seed_from
 from vrs_jax.maps.config import CONFIGS, MapConfig, get_config
 from vrs_jax.maps.map import (
     Map,
@@ -20,4 +20,4 @@ from vrs_jax.maps.map import (
 )
 
 __all__ = ["CONFIGS", "Map", "MapConfig", "MapSource", "build_map", "get_config", "load_map",
-           "load_map_for", "map_bytes", "read_stats", "save_map"]
+           "load_map_for", "map_bytes", "read_stats", "save_map", "seed_from"]

@@ -118,6 +118,41 @@ def load_partial(folder: Path) -> Map:
     return map_io.load_map(folder, descriptors=True, require_ilm=False)
 
 
+def seed_from(src: str | Path, out: str | Path, scene: Scene, cfg: MapConfig,
+              source_options: dict[str, Any] | None = None) -> bool:
+    """Start the map folder ``out`` with the EGM of the map in ``src`` (its NeRF is not
+    taken), so that :func:`build_map` trains a NeRF of other settings without building the
+    EGM again. ``src`` must be a map of the same dataset and split with the same EGM
+    settings. Nothing is done (False) when ``out`` already holds a map: a re-run resumes it.
+
+    Raises VrsError naming ``src`` when it is not such a map."""
+    src, out = Path(src), Path(out)
+    if (out / map_io.META).is_file():
+        return False
+    if not (src / map_io.META).is_file():
+        raise VrsError("--egm-from: not a vrs-jax map folder (no map.json)", src)
+    if src.resolve() == out.resolve():
+        raise VrsError("--egm-from names the output folder itself", src)
+    source = scene_source(scene, source_options)
+    prov = provenance(scene, source)
+    meta = map_io.read_meta(src)
+    _check_provenance(src, meta, prov)
+    old = load_partial(src)
+    if (old.source.format, old.source.options, old.source.query_names) != (
+            source.format, source.options, source.query_names):
+        raise VrsError(f"--egm-from: the map was built from another dataset, split or reader "
+                       f"options ({old.source.format} at {old.source.root}, options "
+                       f"{dict(old.source.options)})", src)
+    if old.config.egm != cfg.egm:
+        raise VrsError(f"--egm-from: the map's EGM settings (config {old.config.name!r}) "
+                       f"differ from config {cfg.name!r}'s", src / map_io.META)
+    stats = {k: v for k, v in meta.get("stats", {}).items() if k == "egm"}
+    stats["egm_from"] = str(src.resolve())
+    map_io.save_map(Map(egm=old.egm, ilm=None, config=cfg, source=source), out, stats,
+                    provenance=prov)
+    return True
+
+
 def keypoint_depths(egm) -> np.ndarray:
     """[N, K_max] z-depth of each map keypoint's 3D point in its reference camera, 0 where
     the keypoint links none (the NeRF's depth-loss targets)."""
