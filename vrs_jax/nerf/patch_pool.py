@@ -16,8 +16,10 @@ the synthetic room at the cpu-small budget (both 100% at 5 cm / 5 deg).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -29,10 +31,15 @@ from vrs_jax.features.rays import patch_rays
 Array = Any
 
 
-def _patch_targets(rgb: np.ndarray, kp: np.ndarray, cfg: PatchConfig) -> np.ndarray:
-    """Real RGB patch samples [Kp, P, P, 3] of keypoints [Kp, 4] from an image [H, W, 3]."""
-    chans = [extract_patches(jnp.asarray(rgb[..., c]), jnp.asarray(kp), cfg) for c in range(3)]
-    return np.stack([np.asarray(c) for c in chans], axis=-1)
+@functools.partial(jax.jit, static_argnames="cfg")
+def _image_patches(rgb: Array, kp: Array, K: Array, R: Array, t: Array, dist: Array | None,
+                   cfg: PatchConfig) -> tuple[Array, Any]:
+    """One reference image's real RGB patch samples [K_max, P, P, 3] (the targets) and the
+    patch rays (PatchRays of [K_max, P, P, ...]) of its keypoints [K_max, 4] (every row a
+    valid keypoint); image [H, W, 3], camera K [3, 3], R [3, 3], t [3], dist [5] or None.
+    Fixed shapes: one compilation per image size, not one per keypoint count."""
+    targets = jnp.stack([extract_patches(rgb[..., c], kp, cfg) for c in range(3)], axis=-1)
+    return targets, patch_rays(kp, K, R, t, cfg, dist)
 
 
 def patch_pool(refs: Scene, keypoints: np.ndarray, kp_mask: np.ndarray, cfg: PatchConfig,
@@ -69,16 +76,18 @@ def patch_pool(refs: Scene, keypoints: np.ndarray, kp_mask: np.ndarray, cfg: Pat
             continue
         w, h = (int(s) for s in refs.sizes[i])
         rgb = read_image(refs.image_paths[i], background=bg, size=(w, h))
-        targets = _patch_targets(rgb, kp, cfg).reshape(-1, 3)
-        pr = patch_rays(jnp.asarray(kp, jnp.float32),
-                        *(jnp.asarray(np.asarray(a, np.float32)) for a in
-                          (refs.K[i], refs.R[i], refs.t[i])), cfg,
-                        jnp.asarray(np.asarray(refs.dist[i], np.float32))
-                        if np.any(refs.dist[i]) else None)
-        o = np.asarray(pr.origins).reshape(-1, 3)
-        d = np.asarray(pr.directions).reshape(-1, 3)
-        r = np.asarray(pr.radii).reshape(-1)
-        pos = np.asarray(pr.positions).reshape(-1, 2)
+        valid = np.asarray(kp_mask[i], bool)
+        # padded rows repeat a valid keypoint: every row is computed, the valid ones kept
+        kp_all = np.where(valid[:, None], np.asarray(keypoints[i], np.float32), kp[0])
+        f32 = (jnp.asarray(np.asarray(a, np.float32)) for a in (refs.K[i], refs.R[i], refs.t[i]))
+        targets, pr = _image_patches(jnp.asarray(rgb, jnp.float32), jnp.asarray(kp_all), *f32,
+                                     jnp.asarray(np.asarray(refs.dist[i], np.float32))
+                                     if np.any(refs.dist[i]) else None, cfg)
+        targets = np.asarray(targets)[valid].reshape(-1, 3)
+        o = np.asarray(pr.origins)[valid].reshape(-1, 3)
+        d = np.asarray(pr.directions)[valid].reshape(-1, 3)
+        r = np.asarray(pr.radii)[valid].reshape(-1)
+        pos = np.asarray(pr.positions)[valid].reshape(-1, 2)
         inside = (pos[:, 0] >= 0) & (pos[:, 0] <= w) & (pos[:, 1] >= 0) & (pos[:, 1] <= h)
         sel = np.flatnonzero(inside & (rng.random(len(o)) < keep_frac))
         out["origins"].append(o[sel])
