@@ -628,28 +628,49 @@ def set_aside(mngr: ocp.CheckpointManager, steps: list[int]) -> ocp.CheckpointMa
 # ----------------------------------------------------------------------------- loop
 
 
-# A cluster whose training-batch PSNR falls this far below its best of the run (from the
-# first step on) has collapsed (an lr far too high: 3.9 dB against 19.4 on the synthetic room);
-# healthy runs stay within about 1 dB of their best.
+# A cluster whose training-batch PSNR level falls this far below its best level of the run
+# (from the first step on) has collapsed (an lr far too high: 3.9 dB against 19.4 on the
+# synthetic room); healthy runs stay within about 1 dB of their best.
 COLLAPSE_DB = 6.0
+# The level is the median of the last 3 host reads, each one batch's PSNR: a small batch's
+# PSNR swings by several dB (64-ray batches of the phone walk's 4-cluster map: 22.3 -> 16.1
+# dB on one read), so the best single read of a long run is no baseline (such runs were
+# stopped as diverged at steps 3,500-10,900 and went on fine); a collapse persists.
+COLLAPSE_READS = 3
 
 
-def check_health(m: dict[str, np.ndarray], best_psnr: np.ndarray | None, step: int,
-                 last_good: int | None, out_dir: str | Path | None) -> np.ndarray:
+@dataclasses.dataclass
+class Health:
+    """The PSNR collapse check's memory: per cluster, the last reads and the best level."""
+
+    recent: list[np.ndarray] = dataclasses.field(default_factory=list)  # <= COLLAPSE_READS x [C]
+    best: np.ndarray | None = None  # [C] best level so far
+
+    def update(self, psnr: np.ndarray) -> np.ndarray:
+        """Add one read [C]; returns the level [C] (median of the recent reads)."""
+        self.recent = [*self.recent, np.asarray(psnr, np.float64)][-COLLAPSE_READS:]
+        level = np.median(np.stack(self.recent), axis=0)
+        self.best = level if self.best is None else np.fmax(self.best, level)
+        return level
+
+
+def check_health(m: dict[str, np.ndarray], health: Health, step: int,
+                 last_good: int | None, out_dir: str | Path | None) -> bool:
     """Raise TrainingDiverged when the host-read metrics ``m`` ([C] loss, psnr, finite) show
-    non-finite values or a PSNR collapse (:data:`COLLAPSE_DB` below ``best_psnr``, the best
-    so far); returns the updated best PSNR per cluster."""
+    non-finite values or a PSNR collapse (the level, :class:`Health`, :data:`COLLAPSE_DB`
+    below its best so far). Returns whether this read alone is that low (suspect: the caller
+    saves no checkpoint until the level says whether it was noise)."""
     psnr = np.asarray(m["psnr"], np.float64)
-    best = psnr if best_psnr is None else np.fmax(best_psnr, psnr)
     finite = np.asarray(m["finite"]) & np.isfinite(psnr)
-    collapsed = finite & (psnr < best - COLLAPSE_DB)
+    level = health.update(np.where(finite, psnr, -np.inf))
+    collapsed = finite & (level < health.best - COLLAPSE_DB)
     if np.all(finite) and not np.any(collapsed):
-        return best
+        return bool(np.any(psnr < health.best - COLLAPSE_DB))
     where = (f"last good checkpoint: step {last_good} in {Path(out_dir) / 'checkpoints'}"
              if last_good is not None else "no checkpoint was saved yet")
     c = int(np.flatnonzero(~finite | collapsed)[0])
     what = (f"loss {float(m['loss'][c])}, parameters finite: no" if not finite[c] else
-            f"training PSNR collapsed to {psnr[c]:.1f} dB from {best[c]:.1f}")
+            f"training PSNR collapsed to {psnr[c]:.1f} dB from {health.best[c]:.1f}")
     raise TrainingDiverged(f"training diverged by step {step} (cluster {c}: {what}); stopped; "
                            f"{where}; try a lower lr_init")
 
@@ -742,7 +763,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     compile_s, t_loop, aside_s = 0.0, None, 0.0  # aside: evaluation + checkpoint time
     steps_after_compile = start_step
     held = math.nan
-    best_psnr = None
+    health = Health()
     stop_on_sigterm = sigterm_stops()  # a kill is a clean stop: checkpoints stay whole
     stop_on_sigterm.__enter__()
     try:
@@ -753,7 +774,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             if t_loop is None:  # the first step includes compilation
                 jax.block_until_ready(state.step)
                 # the starting point of the PSNR collapse check (one host read per run)
-                best_psnr = (dist.gather(metrics) if multi else jax.device_get(metrics))["psnr"]
+                health.update((dist.gather(metrics) if multi else jax.device_get(metrics))["psnr"])
                 t_loop = time.perf_counter()
                 compile_s = t_loop - t_start
                 steps_after_compile = s
@@ -773,7 +794,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             t_aside = time.perf_counter()
             # the only host read: every log_every steps
             m = dist.gather(metrics) if multi else jax.device_get(metrics)
-            best_psnr = check_health(m, best_psnr, s, last_good, out_dir)
+            suspect = check_health(m, health, s, last_good, out_dir)
             rec = {"step": s, "loss": float(np.mean(m["loss"])),
                    "psnr": float(np.mean(m["psnr"])), "time": time.perf_counter() - t_start}
             if eval_fn is not None and (s % cfg.eval_every == 0):
@@ -786,7 +807,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             if math.isfinite(held):  # held-out views exist and were evaluated
                 shown["val"] = f"{held:.2f}"
             bar.set_postfix(shown, refresh=False)
-            if mngr is not None and s % cfg.checkpoint_every == 0:
+            if mngr is not None and s % cfg.checkpoint_every == 0 and not suspect:
                 save_checkpoint(mngr, state, meta)
                 last_good = s
             aside_s += time.perf_counter() - t_aside
