@@ -209,6 +209,27 @@ def scene_root(name: str, args, log: Callable[[str], None] = print) -> Path | No
     return root
 
 
+def given_map_root(name: str, recorded: Path, args, map_dir: Path,
+                   log: Callable[[str], None] = print) -> Path:
+    """The dataset folder of a map given with --map: the scene's folder under --data-root
+    when one is given (a map built elsewhere, or on another copy of the data), else the
+    folder the map recorded, else the scene's default folder. VrsError when none exists."""
+    candidates = []
+    if args.data_root and name != "synthetic":
+        candidates.append(Path(args.data_root).joinpath(*SCENES[name].parts))
+    candidates.append(recorded)
+    if not args.data_root and name != "synthetic":
+        candidates.append(default_data_root().joinpath(*SCENES[name].parts))
+    for root in candidates:
+        if root.exists():
+            if root != recorded:
+                log(f"[{name}] reading the map's images from {root} (recorded: {recorded})")
+            return root
+    raise VrsError("the map's dataset folder is not there (recorded "
+                   f"{recorded}; looked in {', '.join(str(c) for c in candidates)}): "
+                   "pass --data-root", map_dir)
+
+
 def evenly_spaced(n: int, k: int | None) -> np.ndarray:
     """k indices spread evenly over range(n) (all of them when k is None or >= n)."""
     if k is None or k >= n:
@@ -233,7 +254,8 @@ def prepare_scene(name: str, args, log: Callable[[str], None] = print, need_nerf
         # the map's own split (its recorded reader options), else the scene's
         opts = ({k: _parse_option(v) for k, v in src.options} if src.format
                 else spec.reader_options)
-        scene = _load_scene(src.format or spec.fmt, Path(src.root), opts)
+        root = given_map_root(name, Path(src.root), args, map_dir, log)
+        scene = _load_scene(src.format or spec.fmt, root, opts)
     else:
         root = scene_root(name, args, log)
         if root is None:

@@ -283,6 +283,32 @@ def test_bad_arguments_and_missing_data(tmp_path, capsys):
     assert map_size.main(["--series", "1,x", "--work", str(tmp_path)]) == 2
 
 
+def test_given_map_reads_its_images_from_data_root_when_given(tmp_path, monkeypatch):
+    """--map with --data-root reads the scene's folder there (a map built on another copy of
+    the data); without it the recorded folder, then the default data root; else one error."""
+    import argparse
+
+    from vrs_jax.errors import VrsError
+
+    recorded = tmp_path / "built_here" / "instant_ngp_fox"
+    other = tmp_path / "copy"
+    (other / "instant_ngp_fox").mkdir(parents=True)
+    default = tmp_path / "default"
+    (default / "instant_ngp_fox").mkdir(parents=True)
+    monkeypatch.setenv("VRS_SHARED_DATA", str(default))
+    ns = lambda root: argparse.Namespace(data_root=root)  # noqa: E731
+    quiet = lambda s: None  # noqa: E731
+    got = common.given_map_root("fox", recorded, ns(str(other)), tmp_path, quiet)
+    assert got == other / "instant_ngp_fox"
+    assert common.given_map_root("fox", recorded, ns(None), tmp_path, quiet) == (
+        default / "instant_ngp_fox")
+    recorded.mkdir(parents=True)
+    assert common.given_map_root("fox", recorded, ns(None), tmp_path, quiet) == recorded
+    with pytest.raises(VrsError, match="--data-root"):
+        common.given_map_root("fox", tmp_path / "gone", ns(str(tmp_path / "none")),
+                              tmp_path, quiet)
+
+
 def test_table_and_number_formatting():
     t = common.table(["a", "b"], [["x", "1"], ["long name", "22"]], title="T")
     lines = t.splitlines()
