@@ -82,6 +82,58 @@ def test_resume_reproduces_uninterrupted_run(prep, tmp_path):
     np.testing.assert_array_equal(np.asarray(full.state.key), np.asarray(resumed.state.key))
 
 
+def test_a_longer_run_goes_on_from_the_rate_it_reached():
+    """Continuing a finished 4,000-step cpu-small run to 12,000 steps: the new horizon's
+    schedule is 4.6x the reached rate at step 4,000 (the walk's continued run diverged);
+    the restart goes on from the reached rate down to lr_final, never rising; a second
+    extension chains on the first; the same horizon keeps the restart it had."""
+    from vrs_jax.nerf.config import get_config as nerf_config
+
+    old = nerf_config("cpu-small")
+    assert old.max_steps == 4000
+    new = dataclasses.replace(old, max_steps=12000)
+    reached = float(T.lr_schedule(old)(4000))
+    np.testing.assert_allclose(reached, old.lr_final, rtol=1e-5)
+    assert float(T.lr_schedule(new)(4000)) / reached == pytest.approx(10 ** (2 / 3), rel=1e-4)
+    restart = T.continued_schedule(new, 4000, old.max_steps, None)
+    assert restart[0] == 4000 and restart[1] == pytest.approx(reached, rel=1e-5)
+    lr = T.lr_schedule(new, restart)
+    steps = np.arange(4000, 12001, 500)
+    rates = np.array([float(lr(s)) for s in steps])
+    np.testing.assert_allclose(rates, old.lr_final, rtol=1e-5)  # lr_final all along
+    # a run stopped early and continued further goes on from where it was, log-linearly
+    mid = T.continued_schedule(new, 1000, old.max_steps, None)
+    lr = T.lr_schedule(new, mid)
+    assert float(lr(1000)) == pytest.approx(float(T.lr_schedule(old)(1000)), rel=1e-5)
+    rates = np.array([float(lr(s)) for s in np.arange(1000, 12001, 500)])
+    assert np.all(np.diff(rates) <= 1e-9) and rates[-1] == pytest.approx(old.lr_final, rel=1e-5)
+    halfway = np.exp(0.5 * (np.log(float(lr(1000))) + np.log(old.lr_final)))
+    assert float(lr(6500)) == pytest.approx(halfway, rel=1e-4)
+    # chained: 12,000 -> 24,000 at step 8,000 starts from the restarted schedule's rate
+    longer = dataclasses.replace(old, max_steps=24000)
+    again = T.continued_schedule(longer, 8000, 12000, mid)
+    assert again[1] == pytest.approx(float(lr(8000)), rel=1e-5)
+    assert T.continued_schedule(new, 6000, 12000, mid) == mid
+
+
+def test_resume_with_a_longer_horizon_records_its_restart(prep, tmp_path):
+    short = dataclasses.replace(prep, cfg=dataclasses.replace(CFG, max_steps=20))
+    T.train(short, tmp_path, steps=20, progress=False)
+    longer = dataclasses.replace(prep, cfg=dataclasses.replace(CFG, max_steps=40))
+    logs: list[str] = []
+    res = T.train(longer, tmp_path, steps=40, progress=False, log=logs.append)
+    assert int(res.state.step) == 40
+    assert any("trained for 20 steps" in s and "goes on from" in s for s in logs), logs
+    mngr = T.checkpoint_manager(tmp_path / "checkpoints", longer.cfg)
+    try:
+        _, meta, _ = T.restore_latest(mngr, T.init_state(longer.cfg, 1))
+    finally:
+        mngr.close()
+    s0, lr0 = meta["lr_restart"]
+    assert s0 == 20
+    assert lr0 == pytest.approx(float(T.rate_before_warmup(20, short.cfg)), rel=1e-5)
+
+
 def test_resume_with_another_config_is_refused(prep, tmp_path):
     T.train(prep, tmp_path, steps=10, progress=False)
     other = dataclasses.replace(prep, cfg=dataclasses.replace(CFG, lr_init=1e-2))

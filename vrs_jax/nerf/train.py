@@ -98,14 +98,35 @@ class ClusterData:
 # ----------------------------------------------------------------------------- optimiser
 
 
-def lr_schedule(cfg: NerfConfig) -> Callable[[Array], Array]:
+def rate_before_warmup(step: Any, cfg: NerfConfig, restart: tuple[int, float] | None = None
+                       ) -> Any:
+    """The schedule's rate at ``step`` (scalar or array) before the warm-up factor:
+    log-linear lr_init -> lr_final over [0, max_steps], or, from ``restart = (s0, lr0)``'s
+    step s0 on, log-linear lr0 -> lr_final over [s0, max_steps]."""
+    xp = jnp if isinstance(step, jax.Array) else np
+    step = xp.asarray(step, xp.float32)
+    t = xp.clip(step / cfg.max_steps, 0.0, 1.0)
+    lr = xp.exp(math.log(cfg.lr_init) * (1 - t) + math.log(cfg.lr_final) * t)
+    if restart is not None:
+        s0, lr0 = restart
+        u = xp.clip((step - s0) / max(cfg.max_steps - s0, 1), 0.0, 1.0)
+        later = xp.exp(math.log(lr0) * (1 - u) + math.log(cfg.lr_final) * u)
+        lr = xp.where(step >= s0, later, lr)
+    return lr
+
+
+def lr_schedule(cfg: NerfConfig, restart: tuple[int, float] | None = None
+                ) -> Callable[[Array], Array]:
     """mip-NeRF's schedule: log-linear lr_init -> lr_final over max_steps, times a
-    sine warm-up from lr_delay_mult to 1 over lr_delay_steps."""
+    sine warm-up from lr_delay_mult to 1 over lr_delay_steps. ``restart`` (s0, lr0): a run
+    continued at step s0 with another max_steps than its checkpoint's goes on from the rate
+    lr0 it had reached down to lr_final (:func:`continued_schedule`), instead of jumping to
+    the new horizon's rate at s0 (4,000 -> 12,000 steps of cpu-small: 4.6x up, and the
+    walk's run diverged)."""
 
     def schedule(step):
         step = jnp.asarray(step, jnp.float32)
-        t = jnp.clip(step / cfg.max_steps, 0.0, 1.0)
-        lr = jnp.exp(math.log(cfg.lr_init) * (1 - t) + math.log(cfg.lr_final) * t)
+        lr = rate_before_warmup(step, cfg, restart)
         if cfg.lr_delay_steps > 0:
             w = jnp.sin(0.5 * jnp.pi * jnp.clip(step / cfg.lr_delay_steps, 0.0, 1.0))
             lr = lr * (cfg.lr_delay_mult + (1 - cfg.lr_delay_mult) * w)
@@ -114,8 +135,21 @@ def lr_schedule(cfg: NerfConfig) -> Callable[[Array], Array]:
     return schedule
 
 
-def make_optimizer(cfg: NerfConfig) -> optax.GradientTransformation:
-    adam = optax.adam(lr_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps)
+def continued_schedule(cfg: NerfConfig, step: int, old_max_steps: int,
+                       old_restart: tuple[int, float] | None) -> tuple[int, float] | None:
+    """The restart of a run resumed at ``step`` from a checkpoint trained for
+    ``old_max_steps`` (with its own restart, or None): unchanged when the horizon is the
+    same, else (step, the rate the checkpoint's schedule had reached there)."""
+    if old_max_steps == cfg.max_steps:
+        return old_restart
+    old = dataclasses.replace(cfg, max_steps=old_max_steps)
+    return (int(step), float(rate_before_warmup(step, old, old_restart)))
+
+
+def make_optimizer(cfg: NerfConfig, restart: tuple[int, float] | None = None
+                   ) -> optax.GradientTransformation:
+    adam = optax.adam(lr_schedule(cfg, restart), b1=cfg.adam_b1, b2=cfg.adam_b2,
+                      eps=cfg.adam_eps)
     if cfg.grad_max_norm > 0:
         return optax.chain(optax.clip_by_global_norm(cfg.grad_max_norm), adam)
     return adam
@@ -135,7 +169,8 @@ def init_state(cfg: NerfConfig, n_clusters: int, seed: int | None = None) -> Tra
 
 
 @functools.lru_cache(maxsize=8)
-def make_train_step(cfg: NerfConfig, donate: bool = True
+def make_train_step(cfg: NerfConfig, donate: bool = True,
+                    restart: tuple[int, float] | None = None
                     ) -> Callable[[TrainState, ClusterData, data_lib.RayBank],
                                   tuple[TrainState, dict[str, Array]]]:
     """The jitted training step for all clusters at once.
@@ -143,7 +178,7 @@ def make_train_step(cfg: NerfConfig, donate: bool = True
     Returns ``step(state, clusters, bank) -> (state, metrics)`` with metrics of shape [C]:
     loss, psnr (fine level, training batch), finite (loss and new params all finite).
     """
-    optimizer = make_optimizer(cfg)
+    optimizer = make_optimizer(cfg, restart)
 
     def one_cluster(params, opt_state, key_data, members, count, center, scale, background,
                     bank):
@@ -719,6 +754,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
     mesh = mesh or cluster_mesh(n_c)
     state = init_state(cfg, n_c)
     meta = {"config": cfg.to_dict(), "scene": prep.fingerprint()}
+    restart = None  # a resumed run's learning-rate restart (lr_schedule)
     mngr = None
     if out_dir is not None:
         mngr = checkpoint_manager(Path(out_dir) / "checkpoints", cfg)
@@ -744,11 +780,21 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             except VrsError:
                 mngr.close()
                 raise
-            log(f"resumed from step {int(state.step)}")
+            old_max = int((old.get("config") or {}).get("max_steps", cfg.max_steps))
+            old_restart = old.get("lr_restart")
+            restart = continued_schedule(cfg, int(state.step), old_max,
+                                         tuple(old_restart) if old_restart else None)
+            if restart is not None and old_max != cfg.max_steps:
+                log(f"resumed from step {int(state.step)} (trained for {old_max} steps): "
+                    f"the learning rate goes on from {restart[1]:.3g} to {cfg.lr_final:.3g} "
+                    f"at step {cfg.max_steps}")
+            else:
+                log(f"resumed from step {int(state.step)}")
+    meta["lr_restart"] = list(restart) if restart is not None else None
     state = shard_state(state, mesh)
     cl = shard_clusters(prep.cluster_data, mesh)
     bank = replicate(prep.bank, mesh)
-    step_fn = make_train_step(cfg)
+    step_fn = make_train_step(cfg, restart=restart)
     eval_fn = make_eval_fn(cfg) if prep.eval_batch is not None else None
     eval_batch = (shard_clusters(jax.tree.map(jnp.asarray, prep.eval_batch), mesh)
                   if eval_fn else None)
