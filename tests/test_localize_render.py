@@ -11,6 +11,7 @@ import pytest
 
 from vrs_jax import localize, maps
 from vrs_jax.errors import VrsError
+from vrs_jax.localize import stages
 from vrs_jax.localize.render import (
     first_pass_keypoints,
     interpolation_matrix,
@@ -186,3 +187,33 @@ def test_first_pass_budget_keeps_the_longest_tracks_and_renders_them_alike(tiny)
     part = np.asarray(render_reference(tiny, jnp.int32(i), patches, cfg))
     np.testing.assert_allclose(part[keep[i]], full[keep[i]], atol=1e-5)
     assert np.all(part[~keep[i]] == 0)
+
+
+def test_unique_points_render_each_map_point_once_a_pass(tiny):
+    """With first_pass_unique_points a candidate drops the keypoints whose 3D points an
+    earlier candidate's selection holds (a numpy walk over the candidates in order); the
+    points the pass can match are the same as without it, each held once; the render
+    stage renders exactly the kept rows."""
+    pid = np.asarray(tiny.egm.point_idx)
+    idx = jnp.asarray([3, 0, 1, 2], jnp.int32)
+    cfg = localize.get_config("test", first_pass_keypoints=20)
+    uniq = dataclasses.replace(cfg, first_pass_unique_points=True)
+    every = np.asarray(first_pass_keypoints(tiny, idx, cfg))
+    keep = np.asarray(first_pass_keypoints(tiny, idx, uniq))
+    seen: set[int] = set()
+    for c, i in enumerate(np.asarray(idx)):
+        want = every[c].copy()
+        for s in np.flatnonzero(every[c]):
+            if pid[i, s] >= 0 and int(pid[i, s]) in seen:
+                want[s] = False
+            seen.add(int(pid[i, s]))
+        np.testing.assert_array_equal(keep[c], want)
+    assert keep[0].tolist() == every[0].tolist() and keep.sum() < every.sum()
+    held = lambda k: {int(pid[i, s]) for c, i in enumerate(np.asarray(idx))  # noqa: E731
+                      for s in np.flatnonzero(k[c]) if pid[i, s] >= 0}
+    assert held(keep) == held(every)
+    gray = np.asarray(stages.render(tiny, None, uniq, {"idx": idx})["gray"])
+    assert np.all(gray[~keep] == 0) and np.all(np.abs(gray[keep]).sum(axis=(1, 2)) > 0)
+    # a single image (render_reference, the cache's unit) keeps its own selection
+    one = np.asarray(first_pass_keypoints(tiny, idx[1], uniq))
+    np.testing.assert_array_equal(one, every[1])

@@ -163,6 +163,10 @@ class LocalizeConfig:
     # Render mode: keypoints per retrieved image that the first pass renders and matches,
     # those of the longest tracks first (render.first_pass_keypoints); 0: every one.
     first_pass_keypoints: int = 0
+    # Render mode: a candidate's first-pass keypoint whose 3D point an earlier candidate
+    # already renders is not rendered again (nor matched: each point once a pass, as the
+    # guided pass renders it). False: every candidate its own selection.
+    first_pass_unique_points: bool = False
     # Guided passes (render where the query is): after a successful pose, the retrieved
     # images' map points are projected with it and each query keypoint is matched only to
     # points predicted within guided_radius pixels (mutual nearest neighbour, ratio test

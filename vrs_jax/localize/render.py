@@ -240,12 +240,37 @@ def first_pass_keypoints(m: Map, idx: Array, cfg: LocalizeConfig) -> Array:
     pass renders (render mode) and matches: every valid one, or with
     ``cfg.first_pass_keypoints`` > 0 that many per image, those of the longest tracks first
     (3D points seen in the most reference images: the best triangulated, the likeliest in
-    view of a query), ties in the map's keypoint order."""
+    view of a query), ties in the map's keypoint order. With ``cfg.first_pass_unique_points``
+    and a list of candidates (idx [k]), a keypoint whose 3D point an earlier candidate's
+    selection holds is dropped (:func:`unique_points`): each point rendered once a pass."""
     mask = m.egm.kp_mask[idx]
+    pid = m.egm.point_idx[idx]
     budget = cfg.first_pass_keypoints
-    if budget <= 0 or budget >= mask.shape[-1]:
-        return mask
-    return longest_tracks(mask, m.egm.point_idx[idx], track_lengths(m), budget)
+    if 0 < budget < mask.shape[-1]:
+        mask = longest_tracks(mask, pid, track_lengths(m), budget)
+    if cfg.first_pass_unique_points and mask.ndim == 2:
+        mask = unique_points(mask, pid)
+    return mask
+
+
+def first_occurrence(ok: Array, *keys: Array) -> Array:
+    """[M] bool: the ``ok`` entries whose key (one value of each ``keys`` array [M] int) no
+    earlier ``ok`` entry has: each key kept once, at its first valid position."""
+    order = jnp.lexsort((jnp.arange(ok.shape[0]), *keys[::-1], ~ok))  # valid first, by key
+    ok_s = ok[order]
+    same = ok_s[:-1]
+    for k in keys:
+        k_s = k[order]
+        same = same & (k_s[1:] == k_s[:-1])
+    same = jnp.concatenate([jnp.zeros(1, bool), same])
+    return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
+
+
+def unique_points(mask: Array, pid: Array) -> Array:
+    """[k, K] bool: ``mask`` [k, K] without the entries whose map point (``pid`` [k, K],
+    -1 none) an earlier entry holds, candidates in order, slots in order within one."""
+    k, n = mask.shape
+    return first_occurrence(mask.reshape(-1), pid.reshape(-1)).reshape(k, n)
 
 
 def render_rows(field: Field, kp: Array, keep: Array, depth: Array, K: Array, R: Array,
@@ -261,17 +286,20 @@ def render_rows(field: Field, kp: Array, keep: Array, depth: Array, K: Array, R:
     return jnp.zeros_like(gray).at[order].set(jnp.where(keep[order, None, None], gray, 0.0))
 
 
-def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig) -> Array:
-    """Rendered grey patches [K_max, P, P] of reference image ``i``'s first-pass keypoints
-    (:func:`first_pass_keypoints`; zeros elsewhere) with its cluster's NeRF."""
+def render_reference(m: Map, i: Array, patches: PatchConfig, cfg: LocalizeConfig,
+                     keep: Array | None = None) -> Array:
+    """Rendered grey patches [K_max, P, P] of reference image ``i``'s keypoints ``keep``
+    [K_max] bool (default its own first-pass keypoints, :func:`first_pass_keypoints`;
+    zeros elsewhere) with its cluster's NeRF."""
     egm, ilm = m.egm, m.ilm
     field = select_field(ilm.fields, ilm.image_cluster[i])
     z = rays_mod.keypoint_depths(egm.points3d, egm.point_idx[i], egm.R[i], egm.t[i])
     args = (egm.K[i], egm.R[i], egm.t[i], egm.dist[i], ilm.near[i], ilm.far[i], patches,
             ilm.config, cfg)
-    if cfg.first_pass_keypoints <= 0:  # every valid keypoint: the mask is a prefix
+    if keep is None and cfg.first_pass_keypoints <= 0:  # every valid one: a prefix
         return render_keypoints(field, egm.keypoints[i], egm.kp_mask[i], z, *args)
-    return render_rows(field, egm.keypoints[i], first_pass_keypoints(m, i, cfg), z, *args)
+    keep = first_pass_keypoints(m, i, cfg) if keep is None else keep
+    return render_rows(field, egm.keypoints[i], keep, z, *args)
 
 
 def render_at_pose(m: Map, i: Array, K: Array, R: Array, t: Array, patches: PatchConfig,

@@ -38,6 +38,7 @@ from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.pnp import PnPConfig, inlier_mask, ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
 from vrs_jax.localize.render import (
+    first_occurrence,
     first_pass_keypoints,
     longest_tracks,
     render_points_at_pose,
@@ -252,27 +253,29 @@ def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     ``n_rendered`` [] int32 (patches rendered)."""
     patches = cfg.patches or m.config.features.patches
     idx = s["idx"]
+    keep = first_pass_keypoints(m, idx, cfg)  # [k, K_max]
 
-    def one(i):
-        return render_reference(m, i, patches, cfg)
+    def one(c):
+        return render_reference(m, idx[c], patches, cfg, keep[c])
 
     k = idx.shape[0]
     if cfg.early_exit_inliers <= 0 or k == 1:
-        gray, rendered = jax.lax.map(one, idx), jnp.ones(k, bool)
+        gray, rendered = jax.lax.map(one, jnp.arange(k)), jnp.ones(k, bool)
     else:
         gray, rendered = early_exit_render(m, q, cfg, idx, one)
-    n = jnp.sum(first_pass_keypoints(m, idx, cfg) & rendered[:, None]).astype(jnp.int32)
+    n = jnp.sum(keep & rendered[:, None]).astype(jnp.int32)
     return {"gray": gray, "rendered": rendered, "n_rendered": n}
 
 
 def early_exit_render(m: Map, q: Query, cfg: LocalizeConfig, idx: Array,
                       one: Callable[[Array], Array]) -> tuple[Array, Array]:
-    """Render the candidates idx [k] best first, stopping once the correspondences so far
-    give a RANSAC seed with ``cfg.early_exit_inliers`` inliers (describe, matching and
-    ransac as below, on the rendered candidates only). Returns gray [k, K_max, P, P] (zeros
-    where not rendered) and rendered [k] bool."""
+    """Render the candidates idx [k] best first (``one(c)``: candidate c's patches),
+    stopping once the correspondences so far give a RANSAC seed with
+    ``cfg.early_exit_inliers`` inliers (describe, matching and ransac as below, on the
+    rendered candidates only). Returns gray [k, K_max, P, P] (zeros where not rendered) and
+    rendered [k] bool."""
     k = idx.shape[0]
-    blank = jax.eval_shape(one, idx[0])
+    blank = jax.eval_shape(one, jnp.int32(0))
 
     def confident(gray, rendered):
         st = {"idx": idx, "gray": gray, "rendered": rendered}
@@ -283,7 +286,7 @@ def early_exit_render(m: Map, q: Query, cfg: LocalizeConfig, idx: Array,
     def step(carry, c):
         gray, rendered, done = carry
         g = jax.lax.cond(done, lambda: jnp.zeros(blank.shape, blank.dtype),
-                         lambda: one(idx[c]))
+                         lambda: one(c))
         gray = gray.at[c].set(g)
         rendered = rendered.at[c].set(~done)
         # the last candidate needs no decision
@@ -308,19 +311,6 @@ def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
         if "rendered" in s:
             mask = mask & s["rendered"][:, None]
     return {"desc": desc, "desc_mask": mask}
-
-
-def first_occurrence(ok: Array, *keys: Array) -> Array:
-    """[M] bool: the ``ok`` entries whose key (one value of each ``keys`` array [M] int) no
-    earlier ``ok`` entry has: each key kept once, at its first valid position."""
-    order = jnp.lexsort((jnp.arange(ok.shape[0]), *keys[::-1], ~ok))  # valid first, by key
-    ok_s = ok[order]
-    same = ok_s[:-1]
-    for k in keys:
-        k_s = k[order]
-        same = same & (k_s[1:] == k_s[:-1])
-    same = jnp.concatenate([jnp.zeros(1, bool), same])
-    return jnp.zeros_like(ok).at[order].set(ok_s & ~same)
 
 
 def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
