@@ -193,7 +193,7 @@ def test_named_localize_config_comments_match_values():
             cpu.guided_threshold_px, cpu.pnp.threshold_px, cpu.probe_grid,
             cpu.first_pass_keypoints, cpu.guided_reuse_inliers, cpu.guided_keypoints,
             cpu.first_pass_unique_points) == (
-        5, 1024, True, 16, 8, 1, ("render",), 2, 24, 2048, 4.0, 2.0, 6.0, 2, 128, True, 96,
+        5, 1024, True, 32, 8, 1, ("render",), 2, 24, 2048, 4.0, 2.0, 6.0, 2, 128, True, 96,
         True)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)

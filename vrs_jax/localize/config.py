@@ -258,22 +258,20 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # Two CPU cores: top-5 retrieval (as the paper), 1024 query keypoints, depth-guided
     # sampling of every second patch sample (render_stride 2: 64 rays per 15 x 15 patch, the
     # rest interpolated; measured on dtu_scan24 with 16 + 8 samples: 55.4% own-keypoint rate
-    # against 55.0% at stride 1). Each patch's 4 corner rays (probe_grid 2) take 16 samples
-    # around the keypoint's 3D point and every ray resamples 8 from their weights: 576 NeRF
-    # evaluations per patch instead of 64 x (32 + 16) = 3072. With 32 probe samples (640;
-    # benchmarks.fidelity --views 6, own-keypoint rate, same maps): scan24 67.4% against
-    # 71.4% for every ray's own 32 + 8 (16 resampled: 72.2% at 1152), fern 68.0% against
-    # 71.4%, the synthetic room 95.7% against 97.9%; 3 x 3 probes gain nothing (scan24
-    # 66.3%); 16 probe samples instead of 32 give the same own-keypoint rate within 0.6
-    # points on all six benchmark scenes (README, "Render cost") and the same recall (below).
-    # The first pass renders each candidate's 128 keypoints of the longest tracks, best
-    # candidate first, less those whose 3D point an earlier candidate renders
-    # (first_pass_unique_points: on the walk 48-65% of the 2nd-5th candidates' points were
-    # the 1st's), and stops once RANSAC has 24 inliers. 16 samples with unique points against
-    # 32 without (benchmarks.localize on the six scenes, the same maps, README "Each map
-    # point rendered once"): the same recall at 1% / 1 deg and 2% / 2 deg on every scene, the
-    # walk's mean NeRF evaluations per query 226 k -> 161 k (its queries that render more
-    # than one candidate), the others' 143-153 k -> 123-142 k. One
+    # against 55.0% at stride 1). Each patch's 4 corner rays (probe_grid 2) take 32 samples
+    # around the keypoint's 3D point and every ray resamples 8 from their weights: 640 NeRF
+    # evaluations per patch instead of 64 x (32 + 16) = 3072. benchmarks.fidelity --views 6
+    # (own-keypoint rate, same maps): scan24 67.4% against 71.4% (16 resampled: 72.2% at
+    # 1152), fern 68.0% against 71.4%, the synthetic room 95.7% against 97.9%; 3 x 3 probes
+    # gain nothing (scan24 66.3%); 16 probe samples (576) kept lego's and the walk's rate and
+    # recall on the six scenes but cost scan24 4.5 points (49.6% against 54.1%, 54 correct
+    # matches per view against 64; README, "Each map point rendered once"). The first pass
+    # renders each candidate's 128 keypoints of the longest tracks, best candidate first,
+    # less those whose 3D point an earlier candidate renders (first_pass_unique_points: on
+    # the walk 48-65% of the 2nd-5th candidates' points were the 1st's), and stops once
+    # RANSAC has 24 inliers (benchmarks.localize on the six scenes, the same maps, README
+    # "Each map point rendered once": the walk's mean NeRF evaluations per query 226 k ->
+    # 181 k, the same recall on every scene but the walk's, one query fewer within 1%). One
     # guided pass then renders from the first pose at most 96 map points near a query
     # keypoint (the longest tracks; the first pass's inliers keep their descriptors instead
     # of being rendered again), matched within 4 px of their projections and refined with a
@@ -300,7 +298,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # scale off; the walk's held-out leg: 2 of 2 in each mode); with 2 none is kept there
     # (benchmarks.track on the depth-loss maps), so those frames are localized in full; the
     # check pass (TrackConfig.max_disagreement) keeps right poses there since (README).
-    "cpu-small": LocalizeConfig(top_k=5, query_keypoints=1024, narrow_samples=16,
+    "cpu-small": LocalizeConfig(top_k=5, query_keypoints=1024, narrow_samples=32,
                                 narrow_fine=8, probe_grid=2, first_pass_keypoints=128,
                                 first_pass_unique_points=True,
                                 guided_passes=1, guided_sources=("render",),
