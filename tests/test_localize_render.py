@@ -217,3 +217,14 @@ def test_unique_points_render_each_map_point_once_a_pass(tiny):
     # a single image (render_reference, the cache's unit) keeps its own selection
     one = np.asarray(first_pass_keypoints(tiny, idx[1], uniq))
     np.testing.assert_array_equal(one, every[1])
+
+
+def test_unique_points_keeps_keypoints_without_a_point():
+    """unique_points drops repeated map points, earlier candidates first, and never a
+    keypoint without one (pid -1), however many there are."""
+    from vrs_jax.localize.render import unique_points
+
+    pid = jnp.asarray([[4, -1, 7, -1], [7, 4, 9, -1]])
+    mask = jnp.asarray([[True, True, True, False], [True, True, True, True]])
+    got = np.asarray(unique_points(mask, pid))
+    np.testing.assert_array_equal(got, [[True, True, True, False], [False, False, True, True]])

@@ -271,7 +271,8 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # the walk 48-65% of the 2nd-5th candidates' points were the 1st's), and stops once
     # RANSAC has 24 inliers (benchmarks.localize on the six scenes, the same maps, README
     # "Each map point rendered once": the walk's mean NeRF evaluations per query 226 k ->
-    # 181 k, the same recall on every scene but the walk's, one query fewer within 1%). One
+    # 181 k; recall the same on the synthetic room, fox, scan24 and fern, lego one query
+    # more and the walk one fewer within 1%). One
     # guided pass then renders from the first pose at most 96 map points near a query
     # keypoint (the longest tracks; the first pass's inliers keep their descriptors instead
     # of being rendered again), matched within 4 px of their projections and refined with a

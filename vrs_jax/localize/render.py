@@ -269,8 +269,9 @@ def first_occurrence(ok: Array, *keys: Array) -> Array:
 def unique_points(mask: Array, pid: Array) -> Array:
     """[k, K] bool: ``mask`` [k, K] without the entries whose map point (``pid`` [k, K],
     -1 none) an earlier entry holds, candidates in order, slots in order within one."""
-    k, n = mask.shape
-    return first_occurrence(mask.reshape(-1), pid.reshape(-1)).reshape(k, n)
+    linked = mask & (pid >= 0)  # keypoints without a point are never duplicates
+    once = first_occurrence(linked.reshape(-1), pid.reshape(-1)).reshape(mask.shape)
+    return once | (mask & ~linked)
 
 
 def render_rows(field: Field, kp: Array, keep: Array, depth: Array, K: Array, R: Array,

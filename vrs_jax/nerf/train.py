@@ -103,15 +103,14 @@ def rate_before_warmup(step: Any, cfg: NerfConfig, restart: tuple[int, float] | 
     """The schedule's rate at ``step`` (scalar or array) before the warm-up factor:
     log-linear lr_init -> lr_final over [0, max_steps], or, from ``restart = (s0, lr0)``'s
     step s0 on, log-linear lr0 -> lr_final over [s0, max_steps]."""
-    xp = jnp if isinstance(step, jax.Array) else np
-    step = xp.asarray(step, xp.float32)
-    t = xp.clip(step / cfg.max_steps, 0.0, 1.0)
-    lr = xp.exp(math.log(cfg.lr_init) * (1 - t) + math.log(cfg.lr_final) * t)
+    step = jnp.asarray(step, jnp.float32)
+    t = jnp.clip(step / cfg.max_steps, 0.0, 1.0)
+    lr = jnp.exp(math.log(cfg.lr_init) * (1 - t) + math.log(cfg.lr_final) * t)
     if restart is not None:
         s0, lr0 = restart
-        u = xp.clip((step - s0) / max(cfg.max_steps - s0, 1), 0.0, 1.0)
-        later = xp.exp(math.log(lr0) * (1 - u) + math.log(cfg.lr_final) * u)
-        lr = xp.where(step >= s0, later, lr)
+        u = jnp.clip((step - s0) / max(cfg.max_steps - s0, 1), 0.0, 1.0)
+        later = jnp.exp(math.log(lr0) * (1 - u) + math.log(cfg.lr_final) * u)
+        lr = jnp.where(step >= s0, later, lr)
     return lr
 
 
@@ -784,7 +783,7 @@ def train(prep: Prepared, out_dir: str | Path | None, steps: int | None = None,
             old_restart = old.get("lr_restart")
             restart = continued_schedule(cfg, int(state.step), old_max,
                                          tuple(old_restart) if old_restart else None)
-            if restart is not None and old_max != cfg.max_steps:
+            if old_max != cfg.max_steps:
                 log(f"resumed from step {int(state.step)} (trained for {old_max} steps): "
                     f"the learning rate goes on from {restart[1]:.3g} to {cfg.lr_final:.3g} "
                     f"at step {cfg.max_steps}")
