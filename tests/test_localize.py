@@ -149,6 +149,36 @@ def test_early_exit_renders_fewer_candidates_and_still_localizes(loaded):
     assert saved > 0  # the exit happened somewhere (the test can fail)
 
 
+def test_early_exit_describes_and_matches_as_the_stages_do(loaded):
+    """An early exit describes and matches each candidate as it renders it; describe and
+    matching then keep what it made, which equals what they compute from its patches (the
+    same correspondences for RANSAC), and an unrendered candidate has no match."""
+    from vrs_jax.localize import stages as st
+
+    m, queries = loaded
+    vrs = m.without_descriptors()
+    cfg = localize.get_config("test", top_k=3, early_exit_inliers=12)
+    exits = 0
+    for i in range(3):
+        q = _query(m, queries, i, cfg)
+        s = localize.run_stages(vrs, q, cfg, until="matching")
+        assert {"desc", "match_j", "match_valid"} <= set(s)
+        plain = {k: s[k] for k in ("idx", "gray", "rendered")}
+        plain.update(st.describe(vrs, q, cfg, plain))
+        assert "match_valid" not in plain and st.describe(vrs, q, cfg, s) == {}
+        plain.update(st.matching(vrs, q, cfg, plain))
+        used = np.asarray(s["desc_mask"])
+        np.testing.assert_array_equal(used, np.asarray(plain["desc_mask"]))
+        np.testing.assert_allclose(np.asarray(s["desc"])[used], np.asarray(plain["desc"])[used],
+                                   atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(s["ok"]), np.asarray(plain["ok"]))
+        np.testing.assert_allclose(np.asarray(s["X"]), np.asarray(plain["X"]), atol=1e-6)
+        rendered = np.asarray(s["rendered"])
+        assert not np.asarray(s["match_valid"])[~rendered].any()
+        exits += int(not rendered.all())
+    assert exits > 0  # an exit happened (the test can fail)
+
+
 def test_first_occurrence_and_near_any_match_numpy():
     rng = np.random.default_rng(0)
     ids = rng.integers(0, 20, 200)

@@ -250,7 +250,9 @@ def retrieval(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """Rendered grey patches [k, K_max, P, P] of the retrieved images' map keypoints,
     ``rendered`` [k] bool (the candidates rendered: all of them unless an early exit) and
-    ``n_rendered`` [] int32 (patches rendered)."""
+    ``n_rendered`` [] int32 (patches rendered). An early exit also returns what describe and
+    matching would make of them (``desc``, ``desc_mask``, ``match_j``, ``match_valid``): it
+    described and matched each candidate as it was rendered."""
     patches = cfg.patches or m.config.features.patches
     idx = s["idx"]
     keep = first_pass_keypoints(m, idx, cfg)  # [k, K_max]
@@ -260,48 +262,60 @@ def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 
     k = idx.shape[0]
     if cfg.early_exit_inliers <= 0 or k == 1:
-        gray, rendered = jax.lax.map(one, jnp.arange(k)), jnp.ones(k, bool)
+        out = {"gray": jax.lax.map(one, jnp.arange(k)), "rendered": jnp.ones(k, bool)}
     else:
-        gray, rendered = early_exit_render(m, q, cfg, idx, one)
-    n = jnp.sum(keep & rendered[:, None]).astype(jnp.int32)
-    return {"gray": gray, "rendered": rendered, "n_rendered": n}
+        out = early_exit_render(m, q, cfg, idx, keep, one)
+    n = jnp.sum(keep & out["rendered"][:, None]).astype(jnp.int32)
+    return {**out, "n_rendered": n}
 
 
-def early_exit_render(m: Map, q: Query, cfg: LocalizeConfig, idx: Array,
-                      one: Callable[[Array], Array]) -> tuple[Array, Array]:
-    """Render the candidates idx [k] best first (``one(c)``: candidate c's patches),
-    stopping once the correspondences so far give a RANSAC seed with
-    ``cfg.early_exit_inliers`` inliers (describe, matching and ransac as below, on the
-    rendered candidates only). Returns gray [k, K_max, P, P] (zeros where not rendered) and
-    rendered [k] bool."""
+def early_exit_render(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, keep: Array,
+                      one: Callable[[Array], Array]) -> State:
+    """Render the candidates idx [k] best first (``one(c)``: candidate c's patches; keep
+    [k, K_max] its rows), describing and matching each one as it is rendered, and stop once
+    the correspondences so far give a RANSAC seed with ``cfg.early_exit_inliers`` inliers.
+    Returns gray [k, K_max, P, P], desc [k, K_max, D], match_j / match_valid [k, Kq] (zeros
+    where not rendered), desc_mask [k, K_max] and rendered [k] bool."""
     k = idx.shape[0]
-    blank = jax.eval_shape(one, jnp.int32(0))
+    dcfg = m.config.features.descriptor
 
-    def confident(gray, rendered):
-        st = {"idx": idx, "gray": gray, "rendered": rendered}
-        for fn in (describe, matching, ransac):
-            st.update(fn(m, q, cfg, st))
-        return st["ok_seed"] & (jnp.sum(st["inl0"] & st["ok"]) >= cfg.early_exit_inliers)
+    def work(c):
+        g = one(c)
+        d = describe_patches(g[None], dcfg)[0]
+        j, valid = match_candidates(q, cfg, d[None], keep[c][None])
+        return g, d, j[0], valid[0]
+
+    blank = jax.eval_shape(work, jnp.int32(0))
 
     def step(carry, c):
-        gray, rendered, done = carry
-        g = jax.lax.cond(done, lambda: jnp.zeros(blank.shape, blank.dtype),
-                         lambda: one(c))
-        gray = gray.at[c].set(g)
+        made, rendered, done = carry
+        new = jax.lax.cond(done, lambda: jax.tree.map(lambda b: jnp.zeros(b.shape, b.dtype),
+                                                      blank), lambda: work(c))
+        made = jax.tree.map(lambda a, x: a.at[c].set(x), made, new)
         rendered = rendered.at[c].set(~done)
-        # the last candidate needs no decision
-        done = jax.lax.cond(done | (c == k - 1), lambda: done,
-                            lambda: confident(gray, rendered))
-        return (gray, rendered, done), None
 
-    init = (jnp.zeros((k,) + blank.shape, blank.dtype), jnp.zeros(k, bool), jnp.bool_(False))
-    (gray, rendered, _), _ = jax.lax.scan(step, init, jnp.arange(k))
-    return gray, rendered
+        def confident():
+            st = lift_matches(m, q, idx, made[2], made[3] & rendered[:, None])
+            st.update(ransac(m, q, cfg, st))
+            return st["ok_seed"] & (jnp.sum(st["inl0"] & st["ok"]) >= cfg.early_exit_inliers)
+
+        # the last candidate needs no decision
+        done = jax.lax.cond(done | (c == k - 1), lambda: done, confident)
+        return (made, rendered, done), None
+
+    init = (jax.tree.map(lambda b: jnp.zeros((k,) + b.shape, b.dtype), blank),
+            jnp.zeros(k, bool), jnp.bool_(False))
+    ((gray, desc, j, valid), rendered, _), _ = jax.lax.scan(step, init, jnp.arange(k))
+    return {"gray": gray, "rendered": rendered, "desc": desc,
+            "desc_mask": keep & rendered[:, None], "match_j": j, "match_valid": valid}
 
 
 def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """Descriptors [k, K_max, D] and mask [k, K_max] of the candidates' keypoints (without
-    the candidates an early exit left unrendered)."""
+    the candidates an early exit left unrendered; an early exit described them already:
+    nothing new)."""
+    if "match_valid" in s:
+        return {}
     idx = s["idx"]
     mask = first_pass_keypoints(m, idx, cfg) if cfg.source == "render" else m.egm.kp_mask[idx]
     if cfg.source == "real":
@@ -313,16 +327,22 @@ def describe(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     return {"desc": desc, "desc_mask": mask}
 
 
-def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
-    """Match the query to each candidate and lift to distinct 2D-3D correspondences:
-    j [k, Kq] matched keypoint slot per candidate, uv [k * Kq, 2], X [k * Kq, 3],
-    ok [k * Kq] (each (query keypoint, 3D point) pair once)."""
+def match_candidates(q: Query, cfg: LocalizeConfig, desc: Array, desc_mask: Array
+                     ) -> tuple[Array, Array]:
+    """The query matched to each candidate's descriptors desc [k, K_max, D] (mask
+    [k, K_max]; mutual nearest neighbour and ratio test): matched slot j [k, Kq] and valid
+    [k, Kq] bool."""
     def one(d, dm):
         j, valid, _ = match(q.desc, q.mask, d, dm, cfg.ratio, cfg.mutual)
         return j, valid
 
-    idx = s["idx"]
-    j, valid = jax.vmap(one)(s["desc"], s["desc_mask"])  # [k, Kq]
+    return jax.vmap(one)(desc, desc_mask)
+
+
+def lift_matches(m: Map, q: Query, idx: Array, j: Array, valid: Array) -> State:
+    """Per-candidate matches (j, valid [k, Kq] of the references idx [k]) lifted to
+    distinct 2D-3D correspondences: uv [k * Kq, 2], X [k * Kq, 3], ok [k * Kq] (each (query
+    keypoint, 3D point) pair once), and j."""
     pid = jnp.take_along_axis(m.egm.point_idx[idx], j, axis=1)  # [k, Kq]
     ok = valid & (pid >= 0)
     X = m.egm.points3d[jnp.maximum(pid, 0)]  # [k, Kq, 3]
@@ -330,6 +350,18 @@ def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     qi = jnp.broadcast_to(jnp.arange(j.shape[1])[None], j.shape)
     ok = first_occurrence(ok.reshape(-1), qi.reshape(-1), pid.reshape(-1))
     return {"j": j, "uv": uv.reshape(-1, 2), "X": X.reshape(-1, 3), "ok": ok}
+
+
+def matching(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
+    """Match the query to each candidate and lift to distinct 2D-3D correspondences:
+    j [k, Kq] matched keypoint slot per candidate, uv [k * Kq, 2], X [k * Kq, 3],
+    ok [k * Kq] (each (query keypoint, 3D point) pair once). An early exit's render matched
+    its candidates already (``match_j``, ``match_valid``): those are lifted."""
+    if "match_valid" in s:
+        j, valid = s["match_j"], s["match_valid"]
+    else:
+        j, valid = match_candidates(q, cfg, s["desc"], s["desc_mask"])
+    return lift_matches(m, q, s["idx"], j, valid)
 
 
 def ransac(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
