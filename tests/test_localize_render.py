@@ -228,3 +228,55 @@ def test_unique_points_keeps_keypoints_without_a_point():
     mask = jnp.asarray([[True, True, True, False], [True, True, True, True]])
     got = np.asarray(unique_points(mask, pid))
     np.testing.assert_array_equal(got, [[True, True, True, False], [False, False, True, True]])
+
+
+def test_spread_tracks_fills_the_budget_cell_by_cell():
+    """Every cell's longest track first, then every cell's second, ...; within a round the
+    longest first; entries not kept or without a point never chosen (numpy reference)."""
+    from vrs_jax.localize.render import spread_tracks
+
+    rng = np.random.default_rng(3)
+    n, n_pts = 60, 40
+    keep = rng.random(n) < 0.8
+    pid = np.where(rng.random(n) < 0.9, rng.integers(0, n_pts, n), -1)
+    track = rng.integers(2, 30, n_pts)
+    cell = rng.integers(0, 5, n)
+    score = np.where(keep & (pid >= 0), track[np.maximum(pid, 0)], -1)
+    rank = np.full(n, n)
+    for c in range(5):
+        members = [i for i in np.argsort(-score, kind="stable") if cell[i] == c and score[i] >= 0]
+        rank[members] = np.arange(len(members))
+    want_order = sorted(np.flatnonzero(score >= 0), key=lambda i: (rank[i], -score[i], i))
+    for budget in (1, 5, 17, n):
+        got = np.asarray(spread_tracks(jnp.asarray(keep), jnp.asarray(pid), jnp.asarray(track),
+                                       jnp.asarray(cell), budget))
+        want = np.zeros(n, bool)
+        want[want_order[:budget]] = True
+        np.testing.assert_array_equal(got, want)
+    # the first round holds one point of every non-empty cell
+    first = np.asarray(spread_tracks(jnp.asarray(keep), jnp.asarray(pid), jnp.asarray(track),
+                                     jnp.asarray(cell), 5))
+    assert sorted(cell[first]) == sorted(set(cell[score >= 0]))
+
+
+def test_first_pass_spread_keeps_the_budget_over_more_cells(tiny):
+    """A spread first-pass budget keeps as many keypoints per image as the longest-track one,
+    each cell of the reference's keypoint grid before any cell's second, so it covers at
+    least as many cells; single images and candidate lists agree."""
+    from vrs_jax.localize.render import grid_cells
+
+    budget, g = 12, 3
+    plain = localize.get_config("test", first_pass_keypoints=budget)
+    spread = dataclasses.replace(plain, first_pass_spread_grid=g)
+    idx = jnp.arange(min(4, tiny.egm.num_images))
+    a = np.asarray(first_pass_keypoints(tiny, idx, plain))
+    b = np.asarray(first_pass_keypoints(tiny, idx, spread))
+    np.testing.assert_array_equal(a.sum(1), b.sum(1))
+    np.testing.assert_array_equal(b[1], np.asarray(first_pass_keypoints(tiny, idx[1], spread)))
+    valid = np.asarray(tiny.egm.kp_mask)[np.asarray(idx)]
+    uv = tiny.egm.keypoints[idx][..., :2]
+    for i in range(len(idx)):
+        cells = np.asarray(grid_cells(uv[i], jnp.asarray(valid[i]), uv[i], g))
+        assert len(set(cells[b[i]])) >= len(set(cells[a[i]]))
+        occupied = len(set(cells[valid[i] & (np.asarray(tiny.egm.point_idx[idx[i]]) >= 0)]))
+        assert len(set(cells[b[i]])) == min(occupied, int(b[i].sum()))

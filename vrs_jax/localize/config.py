@@ -163,6 +163,11 @@ class LocalizeConfig:
     # Render mode: keypoints per retrieved image that the first pass renders and matches,
     # those of the longest tracks first (render.first_pass_keypoints); 0: every one.
     first_pass_keypoints: int = 0
+    # With a first-pass budget: spread it over a first_pass_spread_grid x
+    # first_pass_spread_grid grid over each reference's keypoints (every cell's longest track
+    # first, then every cell's second, ...: render.spread_tracks); 0: the longest tracks
+    # wherever they are.
+    first_pass_spread_grid: int = 0
     # Render mode: a candidate's first-pass keypoint whose 3D point an earlier candidate
     # already renders is not rendered again (nor matched: each point once a pass, as the
     # guided pass renders it). False: every candidate its own selection.
@@ -186,6 +191,10 @@ class LocalizeConfig:
     # can gate its matches tighter than the seed.
     guided_threshold_px: float | None = None
     guided_render: bool = True
+    # Re-matching passes after the guided passes: the last guided pass's descriptors matched
+    # again from its refined pose within guided_radius and refined (kept if no fewer
+    # inliers), rendering nothing (stages.guided_rematch, as tracking's refine_passes).
+    guided_rematch_passes: int = 0
     # Render mode: the map points that are inliers of the first pass's pose keep the
     # descriptor of their first-pass patch (rendered from the reference that matched) in the
     # guided pass instead of being rendered again from the pose; the pass renders only the
@@ -194,6 +203,11 @@ class LocalizeConfig:
     # Render mode: map points the guided pass renders at most (of those it would render),
     # the longest tracks first; 0: no limit.
     guided_keypoints: int = 0
+    # With a guided budget: spread it over a guided_spread_grid x guided_spread_grid grid
+    # over the query keypoints' box (the points' projections at the pose): every cell's
+    # longest track first, then every cell's second, ... (render.spread_tracks); 0: the
+    # longest tracks wherever they are.
+    guided_spread_grid: int = 0
     # Early exit over the retrieved list (render mode): the candidates are rendered best
     # first, and after each one the correspondences so far go to RANSAC; once its seed has
     # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all
@@ -228,8 +242,9 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.narrow_samples must be >= 1 and narrow_fine >= 0")
         if not set(self.guided_sources) <= set(SOURCES):
             raise VrsError(f"LocalizeConfig.guided_sources must be among {SOURCES}")
-        if self.guided_passes < 0 or self.guided_radius <= 0:
-            raise VrsError("LocalizeConfig.guided_passes must be >= 0 and guided_radius > 0")
+        if self.guided_passes < 0 or self.guided_radius <= 0 or self.guided_rematch_passes < 0:
+            raise VrsError("LocalizeConfig.guided_passes and guided_rematch_passes must be >= 0 "
+                           "and guided_radius > 0")
         if self.guided_threshold_px is not None and self.guided_threshold_px <= 0:
             raise VrsError("LocalizeConfig.guided_threshold_px must be > 0 (or None)")
         if self.probe_grid < 0 or self.probe_grid == 1:
@@ -239,6 +254,9 @@ class LocalizeConfig:
         if self.first_pass_keypoints < 0 or self.guided_keypoints < 0:
             raise VrsError("LocalizeConfig.first_pass_keypoints and guided_keypoints must be "
                            ">= 0 (0: all)")
+        if self.guided_spread_grid < 0 or self.first_pass_spread_grid < 0:
+            raise VrsError("LocalizeConfig.guided_spread_grid and first_pass_spread_grid must "
+                           "be >= 0 (0: off)")
         if self.early_exit_inliers < 0:
             raise VrsError("LocalizeConfig.early_exit_inliers must be >= 0 (0: off)")
         if self.coverage_grid < 1:

@@ -235,6 +235,34 @@ def longest_tracks(keep: Array, pid: Array, track: Array, budget: int) -> Array:
     return keep & (rank < budget)
 
 
+def grid_cells(points2d: Array, mask: Array, uv: Array, grid: int) -> Array:
+    """[N] int32 cell (row-major) of each point uv [N, 2] on a ``grid`` x ``grid`` grid over
+    the bounding box of the valid query keypoints (points2d [Kq, 2], mask [Kq]); points
+    outside the box fall in the border cells."""
+    big = jnp.float32(1e30)
+    lo = jnp.min(jnp.where(mask[:, None], points2d, big), axis=0)
+    hi = jnp.max(jnp.where(mask[:, None], points2d, -big), axis=0)
+    span = jnp.maximum(hi - lo, 1e-6)
+    cxy = jnp.clip(jnp.floor((uv - lo) / span * grid), 0, grid - 1).astype(jnp.int32)
+    return cxy[:, 1] * grid + cxy[:, 0]
+
+
+def spread_tracks(keep: Array, pid: Array, track: Array, cell: Array, budget: int) -> Array:
+    """[C] bool: at most ``budget`` of the ``keep`` [C] entries, spread over image cells
+    (``cell`` [C] int32): every cell's longest-track point (map point ``pid`` [C], -1 none;
+    ``track`` [N] lengths) first, then every cell's second, and so on; within a round the
+    longest tracks first, ties in their order."""
+    n = keep.shape[0]
+    score = jnp.where(keep & (pid >= 0), track[jnp.maximum(pid, 0)], -1)
+    by_cell = jnp.lexsort((-score, cell))  # cell by cell, longest tracks first
+    pos = jnp.arange(n)
+    first = jnp.full(n, n).at[cell[by_cell]].min(pos)  # each cell's first position
+    rank = jnp.zeros(n, jnp.int32).at[by_cell].set(pos - first[cell[by_cell]])
+    rank = jnp.where(score >= 0, rank, n)
+    order = jnp.lexsort((-score, rank))  # round by round
+    return keep & (score >= 0) & (jnp.argsort(order, stable=True) < budget)
+
+
 def first_pass_keypoints(m: Map, idx: Array, cfg: LocalizeConfig) -> Array:
     """[..., K_max] bool: the keypoints of reference images ``idx`` [...] that the first
     pass renders (render mode) and matches: every valid one, or with
@@ -246,7 +274,16 @@ def first_pass_keypoints(m: Map, idx: Array, cfg: LocalizeConfig) -> Array:
     mask = m.egm.kp_mask[idx]
     pid = m.egm.point_idx[idx]
     budget = cfg.first_pass_keypoints
-    if 0 < budget < mask.shape[-1]:
+    if 0 < budget < mask.shape[-1] and cfg.first_pass_spread_grid > 0:
+        g, track = cfg.first_pass_spread_grid, track_lengths(m)
+
+        def spread(msk, p, uv):  # one image's keypoints [K_max]
+            return spread_tracks(msk, p, track, grid_cells(uv, msk, uv, g), budget)
+
+        uv = m.egm.keypoints[idx][..., :2]
+        flat = lambda x: x.reshape((-1,) + x.shape[mask.ndim - 1:])  # noqa: E731
+        mask = jax.vmap(spread)(flat(mask), flat(pid), flat(uv)).reshape(mask.shape)
+    elif 0 < budget < mask.shape[-1]:
         mask = longest_tracks(mask, pid, track_lengths(m), budget)
     if cfg.first_pass_unique_points and mask.ndim == 2:
         mask = unique_points(mask, pid)

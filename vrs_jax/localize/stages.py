@@ -40,9 +40,11 @@ from vrs_jax.localize.query import Query
 from vrs_jax.localize.render import (
     first_occurrence,
     first_pass_keypoints,
+    grid_cells,
     longest_tracks,
     render_points_at_pose,
     render_reference,
+    spread_tracks,
     track_lengths,
 )
 from vrs_jax.maps import Map
@@ -148,12 +150,7 @@ def inlier_geometry(points2d: Array, mask: Array, grid: int, R: Array, t: Array,
       passes lay their correspondences out so).
     """
     kq = points2d.shape[0]
-    big = jnp.float32(1e30)
-    lo = jnp.min(jnp.where(mask[:, None], points2d, big), axis=0)
-    hi = jnp.max(jnp.where(mask[:, None], points2d, -big), axis=0)
-    span = jnp.maximum(hi - lo, 1e-6)
-    cxy = jnp.clip(jnp.floor((points2d - lo) / span * grid), 0, grid - 1).astype(jnp.int32)
-    cell = cxy[:, 1] * grid + cxy[:, 0]  # [Kq]
+    cell = grid_cells(points2d, mask, points2d, grid)  # [Kq]
     has_kp = jnp.zeros(grid * grid, bool).at[cell].max(mask)
     inl_q = jnp.zeros(kq, bool).at[jnp.arange(inliers.shape[0]) % kq].max(inliers)
     has_inl = jnp.zeros(grid * grid, bool).at[cell].max(inl_q & mask)
@@ -473,7 +470,10 @@ def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
             keep = keep & ~seen[jnp.maximum(pid, 0)]
         n_cand = keep.shape[0]
         budget = n_cand
-        if cfg.guided_keypoints > 0:
+        if cfg.guided_keypoints > 0 and cfg.guided_spread_grid > 0:
+            cell = grid_cells(q.points2d, q.mask, uv_r, cfg.guided_spread_grid)
+            keep = spread_tracks(keep, pid, track_lengths(m), cell, cfg.guided_keypoints)
+        elif cfg.guided_keypoints > 0:
             keep = longest_tracks(keep, pid, track_lengths(m), cfg.guided_keypoints)
             budget = min(cfg.guided_keypoints, n_cand)
         # the kept candidates (at most the budget) first, as one flat list of rows
@@ -561,7 +561,11 @@ def guided(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     res = s["result"]
     kept = jnp.zeros(q.mask.shape, bool)
     for _ in range(cfg.guided_passes):
-        res, inl = guided_pass(m, q, cfg, s, res)
+        res, inl, (desc, mask) = guided_pass_described(m, q, cfg, s, res)
+        kept = jnp.where(jnp.any(inl), inl, kept)
+    # the last guided pass's descriptors again, nothing rendered
+    for _ in range(cfg.guided_rematch_passes if cfg.guided_passes else 0):
+        res, inl = guided_rematch(m, q, cfg, s["idx"], res, desc, mask)
         kept = jnp.where(jnp.any(inl), inl, kept)
     return {"result": res, "guided_inliers": kept}
 
