@@ -230,9 +230,11 @@ def test_unique_points_keeps_keypoints_without_a_point():
     np.testing.assert_array_equal(got, [[True, True, True, False], [False, False, True, True]])
 
 
-def test_spread_tracks_fills_the_budget_cell_by_cell():
+@pytest.mark.parametrize("cell_step", [1, 1000])
+def test_spread_tracks_fills_the_budget_cell_by_cell(cell_step):
     """Every cell's longest track first, then every cell's second, ...; within a round the
-    longest first; entries not kept or without a point never chosen (numpy reference)."""
+    longest first; entries not kept or without a point never chosen (numpy reference);
+    cell ids may exceed the entries' count (a grid of more cells than keypoints)."""
     from vrs_jax.localize.render import spread_tracks
 
     rng = np.random.default_rng(3)
@@ -240,10 +242,10 @@ def test_spread_tracks_fills_the_budget_cell_by_cell():
     keep = rng.random(n) < 0.8
     pid = np.where(rng.random(n) < 0.9, rng.integers(0, n_pts, n), -1)
     track = rng.integers(2, 30, n_pts)
-    cell = rng.integers(0, 5, n)
+    cell = rng.integers(0, 5, n) * cell_step
     score = np.where(keep & (pid >= 0), track[np.maximum(pid, 0)], -1)
     rank = np.full(n, n)
-    for c in range(5):
+    for c in set(cell):
         members = [i for i in np.argsort(-score, kind="stable") if cell[i] == c and score[i] >= 0]
         rank[members] = np.arange(len(members))
     want_order = sorted(np.flatnonzero(score >= 0), key=lambda i: (rank[i], -score[i], i))

@@ -255,9 +255,11 @@ def spread_tracks(keep: Array, pid: Array, track: Array, cell: Array, budget: in
     n = keep.shape[0]
     score = jnp.where(keep & (pid >= 0), track[jnp.maximum(pid, 0)], -1)
     by_cell = jnp.lexsort((-score, cell))  # cell by cell, longest tracks first
+    c = cell[by_cell]
     pos = jnp.arange(n)
-    first = jnp.full(n, n).at[cell[by_cell]].min(pos)  # each cell's first position
-    rank = jnp.zeros(n, jnp.int32).at[by_cell].set(pos - first[cell[by_cell]])
+    starts = jnp.concatenate([jnp.ones(1, bool), c[1:] != c[:-1]])
+    first = jax.lax.cummax(jnp.where(starts, pos, 0))  # each run's first position
+    rank = jnp.zeros(n, jnp.int32).at[by_cell].set(pos - first)
     rank = jnp.where(score >= 0, rank, n)
     order = jnp.lexsort((-score, rank))  # round by round
     return keep & (score >= 0) & (jnp.argsort(order, stable=True) < budget)

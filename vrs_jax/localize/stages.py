@@ -470,11 +470,12 @@ def guided_descriptors(m: Map, q: Query, cfg: LocalizeConfig, s: State,
             keep = keep & ~seen[jnp.maximum(pid, 0)]
         n_cand = keep.shape[0]
         budget = n_cand
-        if cfg.guided_keypoints > 0 and cfg.guided_spread_grid > 0:
-            cell = grid_cells(q.points2d, q.mask, uv_r, cfg.guided_spread_grid)
-            keep = spread_tracks(keep, pid, track_lengths(m), cell, cfg.guided_keypoints)
-        elif cfg.guided_keypoints > 0:
-            keep = longest_tracks(keep, pid, track_lengths(m), cfg.guided_keypoints)
+        if cfg.guided_keypoints > 0:
+            if cfg.guided_spread_grid > 0:
+                cell = grid_cells(q.points2d, q.mask, uv_r, cfg.guided_spread_grid)
+                keep = spread_tracks(keep, pid, track_lengths(m), cell, cfg.guided_keypoints)
+            else:
+                keep = longest_tracks(keep, pid, track_lengths(m), cfg.guided_keypoints)
             budget = min(cfg.guided_keypoints, n_cand)
         # the kept candidates (at most the budget) first, as one flat list of rows
         rows = jnp.argsort(~keep, stable=True)[:budget]
