@@ -104,6 +104,28 @@ def test_refinement_improves_on_the_seed_on_average():
     assert np.mean(gains) > 0
 
 
+def test_refine_seed_on_a_few_rows_matches_every_row():
+    """refine_seed with max_rows at least the seed's inliers gives the pose of all M slots
+    (the other slots weigh 0); with fewer rows than inliers the first ones still refine the
+    pose near the truth, and the recount always uses every slot."""
+    uv, X, R, t, _ = make_problem(4, n=1200, outliers=0.7)
+    mask = np.ones(len(uv), bool)
+    R0, t0, inl0, ok = pnp.ransac_pnp(*f32(uv, X), mask, *f32(K64), CFG)
+    n_inl = int(np.sum(inl0))
+    assert bool(ok) and 100 < n_inl < 600
+    seed = jax.jit(pnp.refine_seed, static_argnames=("cfg", "max_rows"))
+    args = (R0, t0, inl0, ok, *f32(uv, X), mask, *f32(K64))
+    full = seed(*args, cfg=CFG)
+    few = seed(*args, cfg=CFG, max_rows=600)
+    np.testing.assert_allclose(np.asarray(few.R), np.asarray(full.R), atol=2e-5)
+    np.testing.assert_allclose(np.asarray(few.t), np.asarray(full.t), atol=2e-5)
+    np.testing.assert_array_equal(np.asarray(few.inliers), np.asarray(full.inliers))
+    part = seed(*args, cfg=CFG, max_rows=n_inl // 2)
+    assert bool(part.success) and errors(part.R, part.t, R, t)[0] < 2e-3
+    assert abs(int(part.n_inliers) - int(full.n_inliers)) <= 3
+    assert np.asarray(part.inliers).shape == (len(uv),)
+
+
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), rot_deg=st.floats(0.0, 3.0), trans_m=st.floats(0.0, 0.1),
        outliers=st.sampled_from([0.0, 0.3, 0.6]))

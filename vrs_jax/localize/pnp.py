@@ -434,11 +434,20 @@ def estimate_pose(points2d: Array, points3d: Array, mask: Array, K: Array, cfg: 
 
 
 def refine_seed(R0: Array, t0: Array, inl0: Array, ok: Array, points2d: Array, points3d: Array,
-                mask: Array, K: Array, cfg: PnPConfig) -> PoseResult:
+                mask: Array, K: Array, cfg: PnPConfig, max_rows: int | None = None
+                ) -> PoseResult:
     """The second half of :func:`estimate_pose`: refine a RANSAC seed on its inliers [M],
     recount inliers at the refined pose and flag success (also used to time the stages
-    separately)."""
-    R, t, info = refine_pose(R0, t0, points2d, points3d, inl0.astype(R0.dtype), K, cfg)
+    separately).
+
+    ``max_rows`` (static): the LM sees only that many slots, the seed's inliers first in slot
+    order, instead of all M (the other slots weigh 0 and cost the same work each step); with
+    more inliers than that the first ``max_rows`` refine the pose. The recount uses all M."""
+    uv, X, w = points2d, points3d, inl0.astype(R0.dtype)
+    if max_rows is not None and max_rows < points2d.shape[0]:
+        rows = jnp.argsort(~inl0, stable=True)[:max_rows]
+        uv, X, w = uv[rows], X[rows], w[rows]
+    R, t, info = refine_pose(R0, t0, uv, X, w, K, cfg)
     inliers = inlier_mask(R, t, points2d, points3d, mask, K, cfg.threshold_px) & ok
     n_inl = jnp.sum(inliers).astype(jnp.int32)
     success = ok & (n_inl >= cfg.min_inliers) & jnp.all(jnp.isfinite(R)) & jnp.all(

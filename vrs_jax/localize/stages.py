@@ -370,8 +370,11 @@ def ransac(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
 def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
     """LM refinement of the seed, then the fallback to the top-1 reference pose; also the
     final inlier mask [k * Kq]."""
+    # the LM on at most Kq of the k * Kq slots: the seed's inliers (each query keypoint
+    # matches one 3D point per candidate, so more than Kq inliers needs keypoints matched to
+    # several points)
     pose = refine_seed(s["R0"], s["t0"], s["inl0"], s["ok_seed"], s["uv"], s["X"], s["ok"],
-                       q.K, cfg.pnp)
+                       q.K, cfg.pnp, max_rows=q.points2d.shape[0])
     top = s["idx"][0]
     ok = pose.success
     R = jnp.where(ok, pose.R, m.egm.R[top])
