@@ -304,7 +304,11 @@ def test_train_egm_from_reuses_the_egm_and_trains_another_nerf(tiny_map, small_s
     args = ["--format", "7scenes", "--root", str(small_synthetic_scene), "--config", "test",
             "--quiet", "--out", str(out), "--egm-from", str(tiny_map)]
     assert main([*args, "--set", "net_width=32", "--steps", "5"]) == 0
-    assert "EGM taken from" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "EGM taken from" in said
+    # the NeRF settings that differ from the source map's are named (a --set is not inherited)
+    assert "this NeRF trains with net_width=32 (that map's: 64)" in said
+    assert "max_steps=5" in said
     src, new = maps.load_map(tiny_map), maps.load_map(out)
     for name in ("points3d", "point_idx", "keypoints", "R", "t", "global_desc"):
         np.testing.assert_allclose(np.asarray(getattr(new.egm, name)),

@@ -142,6 +142,25 @@ def test_depth_loss_counts_the_weight_outside_the_window_of_rays_with_depth():
     assert float(model.depth_loss([level], jnp.zeros(3), 0.2)) == 0.0
 
 
+def test_window_loss_of_an_empty_field_is_the_background_error_of_rays_with_depth():
+    """With no density anywhere every window render is the background colour, so the loss
+    is the colour MSE of the background against the targets, over the rays with a depth."""
+    cfg = get_config("test", density_bias=-200.0, window_samples=8, window_fine=4)
+    o, d, r, _, _ = _rays(8)
+    bg = (0.2, 0.5, 0.9)
+    field = _field(bg=bg)
+    rng = np.random.default_rng(3)
+    target = rng.uniform(0.0, 1.0, (8, 3)).astype(np.float32)
+    depth = np.array([3.0, 4.0, 0.0, 5.0, 0.0, 3.5, 4.5, 2.5], np.float32)
+    got = float(model.window_loss(field, o, d, r, jnp.asarray(target), jnp.asarray(depth),
+                                  jax.random.key(0), cfg))
+    has = depth > 0
+    want = np.mean((np.asarray(bg, np.float32)[None] - target[has]) ** 2)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert float(model.window_loss(field, o, d, r, jnp.asarray(target), jnp.zeros(8),
+                                   jax.random.key(0), cfg)) == 0.0
+
+
 def test_flop_count_matches_xla_cost_analysis():
     cfg = get_config("test", use_viewdirs=False)
     params = model.init_params(jax.random.key(0), cfg)

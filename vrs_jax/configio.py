@@ -40,6 +40,13 @@ def check_fields(cls: type, keys: Iterable[str], kind: str) -> None:
             raise VrsError(unknown_name(kind, key, fields))
 
 
+def changed_fields(a: Any, b: Any) -> list[tuple[str, Any, Any]]:
+    """[(field, value in a, value in b)] for each top-level field of two dataclasses of the
+    same class whose values differ (the "name" field excepted), in field order."""
+    return [(f.name, getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)
+            if f.name != "name" and getattr(a, f.name) != getattr(b, f.name)]
+
+
 def _encode(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _encode(x) for k, x in v.items()}

@@ -118,7 +118,7 @@ def run(args: argparse.Namespace, fmt: str | None = None, argv: list[str] | None
             print(f"{scene.format} scene at {scene.root}: {int((~scene.is_query).sum())} "
                   f"reference and {int(scene.is_query.sum())} query images")
         if primary and args.egm_from and maps.seed_from(args.egm_from, out, scene, cfg,
-                                                        scene_opts(args)):
+                                                        scene_opts(args), log=print):
             print(f"EGM taken from {args.egm_from}")
         maps.build_map(scene, out, cfg, progress=not args.quiet, minutes=args.minutes,
                        source_options=scene_opts(args), primary=primary)

@@ -119,11 +119,14 @@ def load_partial(folder: Path) -> Map:
 
 
 def seed_from(src: str | Path, out: str | Path, scene: Scene, cfg: MapConfig,
-              source_options: dict[str, Any] | None = None) -> bool:
+              source_options: dict[str, Any] | None = None,
+              log: Callable[[str], None] | None = None) -> bool:
     """Start the map folder ``out`` with the EGM of the map in ``src`` (its NeRF is not
     taken), so that :func:`build_map` trains a NeRF of other settings without building the
     EGM again. ``src`` must be a map of the same dataset and split with the same EGM
     settings. Nothing is done (False) when ``out`` already holds a map: a re-run resumes it.
+    ``log`` gets one line naming the NeRF settings in which ``cfg`` differs from ``src``'s
+    (the new NeRF trains with ``cfg``'s: a ``--set`` of the source map is not carried over).
 
     Raises VrsError naming ``src`` when it is not such a map."""
     src, out = Path(src), Path(out)
@@ -146,6 +149,10 @@ def seed_from(src: str | Path, out: str | Path, scene: Scene, cfg: MapConfig,
     if old.config.egm != cfg.egm:
         raise VrsError(f"--egm-from: the map's EGM settings (config {old.config.name!r}) "
                        f"differ from config {cfg.name!r}'s", src / map_io.META)
+    changed = configio.changed_fields(old.config.nerf, cfg.nerf)
+    if changed and log is not None:
+        log(f"note: --egm-from {src}: this NeRF trains with " + ", ".join(
+            f"{k}={b!r} (that map's: {a!r})" for k, a, b in changed))
     stats = {k: v for k, v in meta.get("stats", {}).items() if k == "egm"}
     stats["egm_from"] = str(src.resolve())
     map_io.save_map(Map(egm=old.egm, ilm=None, config=cfg, source=source), out, stats,

@@ -36,7 +36,8 @@ _INT_AT_LEAST = {
     "num_samples_coarse": 1, "num_samples_fine": 0, "batch_size": 1, "lr_delay_steps": 0,
     "max_steps": 1, "n_clusters": 1, "patch_pool_max_rays": 0, "render_chunk": 1,
     "log_every": 1, "eval_every": 1, "eval_rays": 1, "checkpoint_every": 1,
-    "keep_checkpoints": 1, "seed": 0, "hash_log2_table": 1,
+    "keep_checkpoints": 1, "seed": 0, "hash_log2_table": 1, "window_samples": 1,
+    "window_fine": 0,
 }
 _MAX_LOG2_TABLE = 24  # 2^24 entries x 16 levels x 2 features: 2 GB of float32 per cluster
 _INF = math.inf
@@ -52,6 +53,7 @@ _FLOAT_RANGES = {
     "near_far_margin": (0.0, 1.0, False, True), "patch_ray_fraction": (0.0, 1.0, False, False),
     "cluster_overlap": (0.0, _INF, False, False),
     "depth_loss_mult": (0.0, _INF, False, False), "depth_loss_margin": (0.0, 1.0, True, True),
+    "window_loss_mult": (0.0, _INF, False, False),
 }
 
 
@@ -143,6 +145,16 @@ class NerfConfig:
     # their surface there. 0: colour loss only (the paper).
     depth_loss_mult: float = 0.0
     depth_loss_margin: float = 0.2
+    # Window colour loss: the same patch rays (those with a point depth) rendered as the
+    # localizer renders them, only inside +-depth_loss_margin around the keypoint's point
+    # depth (model.render_rays_narrow: window_samples evenly spaced, then window_fine drawn
+    # from their weights), and window_loss_mult x their colour MSE added to the loss. The
+    # colour loss over the whole ray trains a render the localizer never makes; this one
+    # trains the render it makes (what lies outside the window is the background there).
+    # 0: off. The sample counts mirror LocalizeConfig's narrow_samples / narrow_fine.
+    window_loss_mult: float = 0.0
+    window_samples: int = 32
+    window_fine: int = 8
     cluster_overlap: float = 0.2  # image also joins cluster b if |x-c_b| <= 1.2 |x-c_own|
     # How the reference cameras are divided (nerf/clusters.py): "kmeans" (K-means++ on the
     # camera centres, the paper's) or "grid" (a uniform grid of n_clusters equal cells over
@@ -161,7 +173,8 @@ class NerfConfig:
     # Fields added since maps were first written, with the value an earlier map meant
     # (configio.from_dict completes a file that lacks them).
     ADDED_FIELDS: ClassVar[dict[str, Any]] = {"contraction": False, "depth_loss_mult": 0.0,
-                                            "depth_loss_margin": 0.2}
+                                            "depth_loss_margin": 0.2, "window_loss_mult": 0.0,
+                                            "window_samples": 32, "window_fine": 8}
 
     @property
     def num_levels(self) -> int:

@@ -294,6 +294,12 @@ def build_bank(scene: Scene, near: np.ndarray, far: np.ndarray,
                    use_dist=bool(np.any(dist)), **extra)
 
 
+def pool_rays_per_batch(bank: RayBank, batch_size: int) -> int:
+    """How many of a batch's rays :func:`sample_rays` draws from the keypoint-patch pool
+    (they lead the batch; static)."""
+    return int(round(bank.pool_fraction * batch_size)) if bank.pool_count is not None else 0
+
+
 def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_size: int
                 ) -> dict[str, Array]:
     """Random training rays of one cluster (jittable, fixed shapes).
@@ -322,7 +328,7 @@ def sample_rays(bank: RayBank, members: Array, count: Array, key: Array, batch_s
     out = {"origins": o[:, 0], "directions": d[:, 0], "radii": bank.radii[img],
            "near": bank.near[img], "far": bank.far[img], "rgb": rgb, "image": img,
            "pixel": jnp.stack([i, j], axis=-1), "depth": jnp.zeros((batch_size,))}
-    n_pool = int(round(bank.pool_fraction * batch_size)) if bank.pool_count is not None else 0
+    n_pool = pool_rays_per_batch(bank, batch_size)
     if n_pool > 0:
         # the first n_pool rays come from the keypoint-patch pool of the same images (an image
         # without pool rays keeps its pixel ray)

@@ -388,6 +388,25 @@ def depth_loss(levels: list[dict[str, Array]], depth: Array, margin: float) -> A
     return sum(out) / (len(levels) * jnp.maximum(jnp.sum(has), 1.0))
 
 
+def window_loss(field: Field, origins: Array, directions: Array, radii: Array, rgb: Array,
+                depth: Array, key: Array, cfg: NerfConfig) -> Array:
+    """Colour MSE of rays rendered as the localizer renders them -> [].
+
+    The rays with a point depth (``depth`` [R] > 0, t units) are rendered only inside
+    +-``cfg.depth_loss_margin`` around it (:func:`render_rays_narrow`, ``cfg.window_samples``
+    then ``cfg.window_fine``, randomized) and compared with ``rgb`` [R, 3]; rays without a
+    depth count for nothing (0 when none has one). origins, directions: [R, 3]; radii: [R].
+    """
+    has = depth > 0
+    d = jnp.where(has, depth, 1.0)
+    m = cfg.depth_loss_margin
+    res = render_rays_narrow(field, origins, directions, radii, d * (1.0 - m), d * (1.0 + m),
+                             key, cfg, cfg.window_samples, cfg.window_fine, randomized=True)
+    se = jnp.mean((res["rgb"] - rgb) ** 2, axis=-1)
+    w = has.astype(se.dtype)
+    return jnp.sum(se * w) / jnp.maximum(jnp.sum(w), 1.0)
+
+
 def nerf_loss(levels: list[dict[str, Array]], rgb_target: Array, cfg: NerfConfig,
               mask: Array | None = None) -> tuple[Array, Array]:
     """Mip-NeRF loss: coarse_loss_mult x MSE(coarse) + MSE(fine).

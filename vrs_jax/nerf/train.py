@@ -62,6 +62,7 @@ from vrs_jax.nerf.model import (
     nerf_loss,
     render_levels,
     render_rays,
+    window_loss,
 )
 
 Array = jax.Array
@@ -184,6 +185,7 @@ def make_train_step(cfg: NerfConfig, donate: bool = True,
         key = jax.random.wrap_key_data(key_data)
         key, k_batch, k_render = jax.random.split(key, 3)
         batch = data_lib.sample_rays(bank, members, count, k_batch, cfg.batch_size)
+        n_pool = data_lib.pool_rays_per_batch(bank, cfg.batch_size)
 
         def loss_fn(p):
             field = Field(p, center, scale, background)
@@ -194,6 +196,11 @@ def make_train_step(cfg: NerfConfig, donate: bool = True,
             if cfg.depth_loss_mult > 0:
                 loss = loss + cfg.depth_loss_mult * depth_loss(levels, batch["depth"],
                                                                cfg.depth_loss_margin)
+            if cfg.window_loss_mult > 0 and n_pool > 0:  # the pool rays lead the batch
+                b = {k: v[:n_pool] for k, v in batch.items()}
+                loss = loss + cfg.window_loss_mult * window_loss(
+                    field, b["origins"], b["directions"], b["radii"], b["rgb"], b["depth"],
+                    jax.random.fold_in(k_render, 1), cfg)
             return loss, mse
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
