@@ -16,6 +16,7 @@ from vrs_jax.features.patches import (
     PatchConfig,
     blur_stack,
     extract_patches,
+    fft_size,
     gaussian_blur_stack,
     grid_inside,
     level_of,
@@ -159,8 +160,9 @@ def test_literal_mode_reads_exact_pixels():
         np.testing.assert_array_equal(got[k], img[i - 5:i + 6, j - 5:j + 6])
 
 
-def test_blur_stack_matches_cv2_gaussian_blur():
-    img = _image(48, 56, seed=4)
+@pytest.mark.parametrize("hw", [(48, 56), (47, 61)])  # padded FFT sizes filled: one axis, both
+def test_blur_stack_matches_cv2_gaussian_blur(hw):
+    img = _image(*hw, seed=4)
     sigmas = (0.0, 0.5, 1.3, 3.0, 6.0)
     got = np.asarray(gaussian_blur_stack(img, sigmas))
     np.testing.assert_array_equal(got[0], img)
@@ -168,6 +170,19 @@ def test_blur_stack_matches_cv2_gaussian_blur():
         k = 2 * int(np.ceil(4 * s)) + 1
         ref = cv2.GaussianBlur(img, (k, k), s, borderType=cv2.BORDER_REFLECT_101)
         np.testing.assert_allclose(g, ref, atol=2e-5)
+
+
+def test_fft_size_is_the_smallest_5_smooth_size_at_least_n():
+    def smooth(m):
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        return m == 1
+
+    for n in range(1, 700):
+        got = fft_size(n)
+        assert got >= n and smooth(got) and not any(smooth(m) for m in range(n, got))
+    assert fft_size(398) == 400 and fft_size(608) == 625
 
 
 def test_level_sigmas_and_levels():
