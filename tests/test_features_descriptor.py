@@ -63,15 +63,19 @@ def _describe_ref(patch: np.ndarray, cfg: DescriptorConfig) -> np.ndarray:
     return h / np.linalg.norm(h)
 
 
-@pytest.mark.parametrize("P", [9, 15])
-def test_matches_numpy_loop_reference(P):
+@pytest.mark.parametrize("P, cfg", [(9, DescriptorConfig()), (15, DescriptorConfig()),
+                                    (11, DescriptorConfig(n_cells=3, n_bins=6))])
+def test_matches_numpy_loop_reference(P, cfg):
+    """Every patch of a batch with two leading axes (the cell products run over all patches
+    at once) against the loop reference."""
     rng = np.random.default_rng(P)
-    patches = cv2.GaussianBlur(rng.uniform(0, 1, (3 * P, P)).astype(np.float32), (0, 0), 1.0)
-    patches = patches.reshape(3, P, P)
-    cfg = DescriptorConfig()
+    patches = cv2.GaussianBlur(rng.uniform(0, 1, (6 * P, P)).astype(np.float32), (0, 0), 1.0)
+    patches = patches.reshape(2, 3, P, P)
     got = np.asarray(describe(patches, cfg))
-    for k in range(3):
-        np.testing.assert_allclose(got[k], _describe_ref(patches[k], cfg), atol=2e-5)
+    assert got.shape == (2, 3, cfg.dim)
+    for a in range(2):
+        for k in range(3):
+            np.testing.assert_allclose(got[a, k], _describe_ref(patches[a, k], cfg), atol=2e-5)
 
 
 @pytest.mark.parametrize("P", PATCH_SIZES)

@@ -14,8 +14,8 @@ grid is rotated and scaled, so the descriptor itself needs no orientation or sca
 3. Soft binning into n_cells x n_cells spatial cells x n_bins orientations: bilinear over the
    cell grid (cell centres at patch fractions (c + 0.5) / n_cells; contributions to cells
    beyond the border are dropped, as in SIFT) times linear over circular orientation bins
-   (bin b centred at 2 pi b / n_bins): trilinear, as Lowe's SIFT. Written as one einsum of
-   fixed weight matrices, so there is no scatter and any P works.
+   (bin b centred at 2 pi b / n_bins): trilinear, as Lowe's SIFT. Written as two products
+   with fixed weight matrices, so there is no scatter and any P works.
 4. Normalisation: L2-normalise, clip at ``clip`` (SIFT's 0.2 against large gradients from
    illumination edges), then RootSIFT (Arandjelovic & Zisserman 2012): L1-normalise and
    take the square root, so the result has unit L2 norm and Euclidean distance between
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -88,6 +89,20 @@ def _gauss_weights(P: int, sigma: float) -> np.ndarray:
     return np.exp(-(t[:, None] ** 2 + t[None, :] ** 2) / (2.0 * sigma ** 2))
 
 
+def _cell_histograms(a, w_cell):
+    """Spatial binning: a [..., P, P, nb] (weighted orientation votes per sample) -> [...,
+    n, n, nb], ``einsum("iy,jx,...ijo->...yxo")``, as two plain matrix products over all
+    patches at once (row cells, then column cells): a batched einsum ran as one tiny product
+    per patch and row, ~1.5x slower on CPU for 1,024 patches."""
+    lead, (P, _, nb), c = a.shape[:-3], a.shape[-3:], w_cell.shape[1]
+    K = math.prod(lead)
+    a = jnp.moveaxis(a.reshape(K, P, P, nb), 1, 0).reshape(P, K * P * nb)  # [i, (K j o)]
+    a = jnp.dot(w_cell.T, a, precision="highest")  # [y, (K j o)]
+    a = a.reshape(c, K, P, nb).transpose(2, 0, 1, 3).reshape(P, c * K * nb)  # [j, (y K o)]
+    a = jnp.dot(w_cell.T, a, precision="highest")  # [x, (y K o)]
+    return jnp.moveaxis(a.reshape(c, c, K, nb), 2, 0).swapaxes(1, 2).reshape(*lead, c, c, nb)
+
+
 @functools.partial(jax.jit, static_argnames="cfg")
 def describe(patches, cfg: DescriptorConfig = DescriptorConfig()):
     """Gradient-histogram descriptors of grey patches (deterministic, jit/vmap-able).
@@ -112,8 +127,7 @@ def describe(patches, cfg: DescriptorConfig = DescriptorConfig()):
     w_ori = jnp.maximum(0.0, 1.0 - jnp.abs(d))  # [..., P, P, nb], circular linear binning
     w_cell = jnp.asarray(_cell_weights(P, cfg.n_cells), jnp.float32)
     g = jnp.asarray(_gauss_weights(P, cfg.gauss_sigma), jnp.float32)
-    hist = jnp.einsum("iy,jx,...ij,...ijo->...yxo", w_cell, w_cell, mag * g, w_ori,
-                      precision="highest")
+    hist = _cell_histograms((mag * g)[..., None] * w_ori, w_cell)
     h = hist.reshape(*hist.shape[:-3], cfg.dim) + cfg.eps
     h = h / jnp.linalg.norm(h, axis=-1, keepdims=True)
     if cfg.clip is not None:
