@@ -145,6 +145,24 @@ def test_planar_sq_distances():
     assert np.asarray(planar_sq_distances(a, a)).diagonal().max() == 0.0
 
 
+def test_first_argmin_is_numpys_argmin():
+    """Ties to the lowest index, slices of +inf (masked rows) give 0, both axes, under jit;
+    a NaN still gives a valid index."""
+    rng = np.random.default_rng(6)
+    x = rng.integers(0, 4, size=(37, 23)).astype(np.float32)  # many ties
+    x[rng.uniform(size=x.shape) < 0.3] = np.inf
+    x[5] = np.inf
+    x[:, 7] = np.inf
+    f = jax.jit(matching.first_argmin, static_argnames="axis")
+    for axis in (0, 1, -1):
+        got = np.asarray(f(x, axis=axis))
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.argmin(x, axis=axis))
+    y = x.copy()
+    y[3, 4] = np.nan
+    assert 0 <= int(matching.first_argmin(y, 1)[3]) < y.shape[1]
+
+
 def _guided_reference(uv_q, dq, mq, uv_r, dr, mr, gr, radius, ratio):
     """Brute-force numpy reference of guided_match."""
     nq, nr = len(uv_q), len(uv_r)
