@@ -239,9 +239,14 @@ def test_a_tracked_pose_its_own_matches_contradict_is_not_kept(loc, stream):
     failed = out.check.replace(success=False)
     assert "found no pose" in track.rejection(wrong, "localized", *pred, scale, cfg, True,
                                               failed)
+    # which pose is kept, not the confidence's calibration, is tested here: this tiny room's
+    # frame leaves the camera centre of its check pass's first pass undetermined by 0.045 of
+    # the scale (1e-6 changes of the query descriptors moved it across the 0.04 threshold)
+    cfg = dataclasses.replace(cfg, confidence=dataclasses.replace(cfg.confidence,
+                                                                  max_centre_std=0.1))
     r, _, verdict, kept = track.accepted(m, q, cfg, track.TrackStep(wrong, out.check), pred,
                                          scale)
-    # the check pass's pose (63 inliers, "localized" here) is kept instead
+    # the check pass's pose (60 inliers, "localized" here) is kept instead
     assert verdict == "localized" and int(r.n_inliers) >= cfg.track.min_inliers
     assert kept["tracked"] and kept["by_check"] and "check pass" in kept["rejected"]
     np.testing.assert_allclose(r.t, out.check.t)
