@@ -74,6 +74,27 @@ def test_interpolation_matches_numpy_reference():
                                rtol=1e-5, atol=1e-5)
 
 
+def test_corner_indices_match_the_reference_index_at_full_scale():
+    # cpu-small's levels (dense 16 and 22, hashed up to 1024 with 2^14 entries): products of
+    # large coordinates and the primes wrap in uint32, as Instant-NGP's hash does
+    res = H.level_resolutions(16, 16, 1024)
+    T = 1 << 14
+    dense = H.dense_levels(res, T)
+    assert dense[:2].all() and not dense[2:].any()
+    rng = np.random.default_rng(3)
+    cells = [rng.integers(0, res, size=(40, len(res))) for _ in range(3)]
+    cells[0][0], cells[1][0], cells[2][0] = res - 1, res - 1, res - 1  # the last cell
+    got = np.asarray(H.corner_indices([jnp.asarray(c, jnp.uint32) for c in cells], res, dense,
+                                      T))
+    assert got.shape == (40, len(res), 8)
+    for p in range(40):
+        for level in range(len(res)):
+            for k, off in enumerate(H.CORNERS):
+                c = [cells[a][p, level] + int(off[a]) for a in range(3)]
+                want = level * T + _np_index(c, int(res[level]), dense[level], T)
+                assert got[p, level, k] == want
+
+
 def test_interpolation_reproduces_a_trilinear_function_on_dense_levels():
     # A dense level whose vertex values are an affine function interpolates it exactly.
     n = 3
