@@ -24,6 +24,21 @@ from vrs_jax.nerf.config import NerfConfig
 Array = jax.Array
 
 
+class Linear(nn.Module):
+    """The parameters of a Dense layer, kernel [d_in, features] (Glorot uniform) and bias
+    [features] (zeros), created as ``nn.Dense`` creates them (same names, order and
+    initialisation) for layers that the MLP composes before applying."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, d_in: int) -> tuple[Array, Array]:
+        kernel = self.param("kernel", jax.nn.initializers.glorot_uniform(),
+                            (d_in, self.features), jnp.float32)
+        bias = self.param("bias", jax.nn.initializers.zeros, (self.features,), jnp.float32)
+        return kernel, bias
+
+
 class MipMLP(nn.Module):
     """Mip-NeRF's MLP: trunk on IPE features -> density; bottleneck + view head -> colour.
 
@@ -55,8 +70,11 @@ class MipMLP(nn.Module):
                 x = jnp.concatenate([x, inputs], axis=-1)
         raw_density = dense(1, name="density")(x)[..., 0].reshape(n_rays, n_samples)
         if self.use_viewdirs:
-            bottleneck = dense(self.net_width, name="bottleneck")(x)
-            h = dense(self.net_width_condition, name="view_0")(bottleneck)
+            # mip-NeRF's bottleneck has no activation: it and the view head's first layer are
+            # one affine map, applied as one product (a third fewer FLOPs in the colour path)
+            kb, bb = Linear(self.net_width, name="bottleneck")(x.shape[-1])
+            kv, bv = Linear(self.net_width_condition, name="view_0")(self.net_width)
+            h = x @ (kb @ kv) + (bb @ kv + bv)
             h_view = dense(self.net_width_condition, use_bias=False, name="view_0_dir")(view)
             h = h.reshape(n_rays, n_samples, -1) + h_view[:, None, :]
             x = nn.relu(h.reshape(n_rays * n_samples, -1))
