@@ -378,7 +378,7 @@ def run(args) -> dict[str, Any]:
                         "mutual": lcfg.mutual, "depth_guided": lcfg.depth_guided,
                         "narrow_samples": lcfg.narrow_samples,
                         "narrow_fine": lcfg.narrow_fine, "depth_margin": lcfg.depth_margin,
-                        "render_stride": lcfg.render_stride, "probe_grid": lcfg.probe_grid,
+                        "render_grid": lcfg.render_grid, "probe_grid": lcfg.probe_grid,
                         "nerf_evals_per_patch": evals_per_patch(m, lcfg)},
            "result": row}
     write_json(args.json, doc)

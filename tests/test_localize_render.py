@@ -14,12 +14,12 @@ from vrs_jax.errors import VrsError
 from vrs_jax.localize import stages
 from vrs_jax.localize.render import (
     first_pass_keypoints,
-    interpolation_matrix,
     nerf_evals_per_ray,
     rays_per_patch,
     render_at_pose,
     render_points_at_pose,
     render_reference,
+    resample_matrix,
 )
 
 
@@ -28,32 +28,64 @@ def tiny(tiny_map):
     return maps.load_map(tiny_map)
 
 
-@pytest.mark.parametrize("n,stride", [(8, 2), (5, 2), (3, 7), (4, 1)])
-def test_interpolation_matrix_is_exact_on_linear_ramps(n, stride):
-    W = interpolation_matrix(n, stride)
-    assert W.shape == ((n - 1) * stride + 1, n)
+@pytest.mark.parametrize("n_from,n_to", [(8, 15), (5, 9), (3, 15), (4, 4), (6, 15), (2, 8),
+                                          (15, 6)])
+def test_resample_matrix_is_exact_on_linear_ramps(n_from, n_to):
+    W = resample_matrix(n_from, n_to)
+    assert W.shape == (n_to, n_from)
     np.testing.assert_allclose(W.sum(1), 1.0, atol=1e-6)
-    np.testing.assert_allclose(W[::stride], np.eye(n), atol=1e-6)  # kept samples unchanged
-    ramp = 3.0 + 0.5 * np.arange(n)
-    fine = 3.0 + 0.5 * np.arange((n - 1) * stride + 1) / stride
-    np.testing.assert_allclose(W @ ramp, fine, atol=1e-5)
+    assert W.min() >= 0.0
+    # a target on a source sample copies it (stride grids: every stride-th target)
+    pos = np.arange(n_to) * (n_from - 1) / (n_to - 1)
+    on = np.isclose(pos, np.round(pos))
+    np.testing.assert_allclose(W[on], np.eye(n_from)[np.round(pos[on]).astype(int)],
+                               atol=1e-6)
+    ramp = 3.0 + 0.5 * np.arange(n_from)
+    np.testing.assert_allclose(W @ ramp, 3.0 + 0.5 * pos, atol=1e-5)
 
 
-def test_strided_render_keeps_its_samples_and_approximates_the_rest(tiny):
+@pytest.mark.parametrize("probes", [False, True])
+def test_sparse_render_grid_keeps_its_samples_and_approximates_the_rest(tiny, probes):
+    """render_grid (P + 1) / 2 renders every second sample of the P x P patches (those equal
+    the full render's) and interpolates the rest; one ray fewer per side falls between the
+    samples and still approximates the full render."""
     cfg1 = localize.get_config("test")
-    cfg2 = dataclasses.replace(cfg1, render_stride=2)
+    if probes:
+        cfg1 = dataclasses.replace(cfg1, probe_grid=2)
     patches = tiny.config.features.patches
+    P = patches.size
     full = np.asarray(render_reference(tiny, jnp.int32(0), patches, cfg1))
-    half = np.asarray(render_reference(tiny, jnp.int32(0), patches, cfg2))
     mask = np.asarray(tiny.egm.kp_mask[0])
-    full, half = full[mask], half[mask]
-    np.testing.assert_allclose(half[:, ::2, ::2], full[:, ::2, ::2], atol=2e-4)
-    mse = np.mean((half - full) ** 2)
-    assert 10 * np.log10(1.0 / mse) > 25.0  # the interpolated samples are close
-    assert rays_per_patch(tiny, cfg2) == ((patches.size - 1) // 2 + 1) ** 2
-    bad = next(s for s in (3, 4, 5) if (patches.size - 1) % s)
-    with pytest.raises(VrsError, match="render_stride"):
-        render_reference(tiny, jnp.int32(0), patches, dataclasses.replace(cfg1, render_stride=bad))
+    for side, min_psnr in (((P + 1) // 2, 25.0), ((P + 1) // 2 - 1, 22.0)):
+        cfg2 = dataclasses.replace(cfg1, render_grid=side)
+        part = np.asarray(render_reference(tiny, jnp.int32(0), patches, cfg2))[mask]
+        if side == (P + 1) // 2:
+            np.testing.assert_allclose(part[:, ::2, ::2], full[mask][:, ::2, ::2], atol=2e-4)
+        mse = np.mean((part - full[mask]) ** 2)
+        assert 10 * np.log10(1.0 / mse) > min_psnr  # the interpolated samples are close
+        assert rays_per_patch(tiny, cfg2) == side * side
+    for bad in (1, P + 1):
+        with pytest.raises(VrsError, match="render_grid"):
+            cfg = dataclasses.replace(cfg1, render_grid=bad)
+            render_reference(tiny, jnp.int32(0), patches, cfg)
+
+
+def test_patch_grid_side_spreads_the_full_grid_evenly():
+    from vrs_jax.features.patches import PatchConfig, patch_grid
+
+    kp = np.array([[40.3, 22.7, 2.5, 0.6]], np.float32)
+    cfg = PatchConfig(size=15)
+    full, foot = patch_grid(kp, cfg)
+    for side in (2, 6, 8, 15):
+        sub, foot_s = patch_grid(kp, cfg, side)
+        assert sub.shape == (1, side, side, 2)
+        np.testing.assert_array_equal(foot_s, foot)  # the full grid's spacing: same cones
+        # an affine grid: the even subgrid is the bilinear resampling of the full one
+        W = resample_matrix(15, side)
+        want = np.einsum("ia,kabc,jb->kijc", W, full, W)
+        np.testing.assert_allclose(sub, want, atol=1e-4)
+    with pytest.raises(VrsError, match="canonical"):
+        patch_grid(kp, PatchConfig(size=15, mode="literal"), 8)
 
 
 def test_render_at_pose_renders_only_the_kept_keypoints(tiny):
@@ -150,7 +182,8 @@ def test_probe_evaluations_and_grids_are_checked(tiny):
     per_patch = 9 * cfg.narrow_samples + patches.size ** 2 * cfg.narrow_fine
     assert nerf_evals_per_ray(tiny, c) * rays_per_patch(tiny, c) == pytest.approx(per_patch)
     with pytest.raises(VrsError, match="probe_grid"):
-        render_reference(tiny, jnp.int32(0), patches, dataclasses.replace(cfg, probe_grid=4))
+        render_reference(tiny, jnp.int32(0), patches,
+                         dataclasses.replace(cfg, probe_grid=patches.size + 1))
     with pytest.raises(VrsError, match="probe_grid"):
         render_reference(tiny, jnp.int32(0), patches,
                          dataclasses.replace(cfg, probe_grid=3, depth_guided=False))

@@ -115,21 +115,33 @@ def _xp(*arrays):
     return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
 
 
-def patch_grid(kp, cfg: PatchConfig = PatchConfig()):
+def patch_grid(kp, cfg: PatchConfig = PatchConfig(), side: int | None = None):
     """Sample positions of the patches of keypoints (numpy in -> numpy out, jax -> jax).
 
     Args:
       kp: [..., 4] keypoints (x, y, scale, angle), COLMAP pixel convention.
       cfg: patch settings (size P, mode, spacing).
+      side: canonical mode only: S >= 2 evenly spaced samples per row and column over the
+        same extent as the P samples (both ends shared), e.g. the corners for S = 2; None:
+        the P samples.
     Returns:
-      positions: [..., P, P, 2] float32 (x, y) pixel coordinates of sample (row i, column j).
-      footprint: [...] float32 spacing between neighbouring samples in pixels (canonical:
-        cfg.spacing * scale; literal: 1). The ray caster turns it into a cone radius.
+      positions: [..., P, P, 2] (or [..., S, S, 2]) float32 (x, y) pixel coordinates of
+        sample (row i, column j).
+      footprint: [...] float32 spacing between neighbouring samples of the full P grid in
+        pixels (canonical: cfg.spacing * scale; literal: 1). The ray caster turns it into a
+        cone radius.
     """
     xp = _xp(kp)
     kp = xp.asarray(kp, dtype=xp.float32)
     P = cfg.size
-    off = xp.arange(P, dtype=xp.float32) - xp.float32((P - 1) / 2.0)
+    if side is None or side == P:
+        off = xp.arange(P, dtype=xp.float32) - xp.float32((P - 1) / 2.0)
+    elif cfg.mode == "literal" or side < 2:
+        raise VrsError(f"a patch grid of {side} samples per side needs canonical patches and "
+                       f"at least 2 (P = {P}, mode {cfg.mode})")
+    else:  # the P grid's offsets at S evenly spaced fractional indices
+        step = (P - 1) / (side - 1)
+        off = xp.asarray(np.arange(side) * step - (P - 1) / 2.0, dtype=xp.float32)
     v, u = xp.meshgrid(off, off, indexing="ij")  # [P, P]: v along rows, u along columns
     x, y = kp[..., 0, None, None], kp[..., 1, None, None]
     if cfg.mode == "literal":

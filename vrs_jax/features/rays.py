@@ -35,7 +35,7 @@ class PatchRays(NamedTuple):
 
 
 def patch_rays(kp: Array, K: Array, R: Array, t: Array, patch_cfg: PatchConfig,
-               dist: Array | None = None) -> PatchRays:
+               dist: Array | None = None, side: int | None = None) -> PatchRays:
     """Cone rays for the patches of keypoints of one reference camera.
 
     Args:
@@ -43,10 +43,12 @@ def patch_rays(kp: Array, K: Array, R: Array, t: Array, patch_cfg: PatchConfig,
       K: [3, 3] intrinsics; R, t: [3, 3], [3] world-to-camera pose.
       patch_cfg: patch geometry (the same config that reads real patches).
       dist: optional [5] OpenCV distortion of the reference camera.
+      side: S rays per patch row and column spread over the patch (canonical patches; see
+        :func:`patch_grid`), each with the full grid's cone radius; None: the P x P grid.
     Returns:
-      PatchRays with arrays [Kp, P, P, ...].
+      PatchRays with arrays [Kp, P, P, ...] (or [Kp, S, S, ...]).
     """
-    pos, foot = patch_grid(kp, patch_cfg)  # [Kp, P, P, 2], [Kp]
+    pos, foot = patch_grid(kp, patch_cfg, side)  # [Kp, S, S, 2], [Kp]
     kshape = pos.shape[:-1]
     flat = pos.reshape(-1, 2)
     o, d = geometry.pixel_rays(K, R, t, flat, dist)

@@ -154,8 +154,8 @@ class LocalizeConfig:
     narrow_samples: int = 24
     narrow_fine: int = 0
     # Probes (depth-guided only): the first, evenly spaced pass above runs on probe_grid x
-    # probe_grid rays of each patch (both ends of every row and column of the patch grid;
-    # P - 1 a multiple of probe_grid - 1), and every rendered ray draws its narrow_fine
+    # probe_grid rays spread over each patch (both ends of every row and column of the patch
+    # grid: its corners for 2), and every rendered ray draws its narrow_fine
     # samples from their weights interpolated over the patch (needs narrow_fine >= 1). A
     # patch then costs probe_grid^2 x narrow_samples + rays x narrow_fine evaluations
     # instead of rays x (narrow_samples + narrow_fine). 0: off (every ray its own passes).
@@ -213,11 +213,11 @@ class LocalizeConfig:
     # early_exit_inliers distinct inliers, the remaining candidates are not rendered. 0: all
     # top_k are rendered.
     early_exit_inliers: int = 0
-    # Render every render_stride-th sample of each patch grid row and column (both ends
-    # included: (P - 1) / stride + 1 per side) and interpolate the samples between them
-    # linearly; the rays keep the full grid's cone radius, so the render carries the real
-    # patch's anti-aliasing blur. 1: every sample. (P - 1) must be a multiple of it.
-    render_stride: int = 1
+    # Render render_grid x render_grid rays spread evenly over each patch (both ends of every
+    # row and column included) and interpolate the P x P samples from them bilinearly; the
+    # rays keep the full grid's cone radius, so the render carries the real patch's
+    # anti-aliasing blur. 0: every sample (P per side); otherwise 2..P, canonical patches.
+    render_grid: int = 0
     # Rays rendered per jitted chunk (bounds memory: chunk x samples x MLP width floats).
     render_chunk: int = 8192
     # Cells per side of the grid over the query keypoints' bounding box on which
@@ -249,8 +249,8 @@ class LocalizeConfig:
             raise VrsError("LocalizeConfig.guided_threshold_px must be > 0 (or None)")
         if self.probe_grid < 0 or self.probe_grid == 1:
             raise VrsError("LocalizeConfig.probe_grid must be 0 (off) or >= 2")
-        if self.render_stride < 1:
-            raise VrsError("LocalizeConfig.render_stride must be >= 1")
+        if self.render_grid < 0 or self.render_grid == 1:
+            raise VrsError("LocalizeConfig.render_grid must be 0 (every sample) or >= 2")
         if self.first_pass_keypoints < 0 or self.guided_keypoints < 0:
             raise VrsError("LocalizeConfig.first_pass_keypoints and guided_keypoints must be "
                            ">= 0 (0: all)")
@@ -274,9 +274,9 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # pass (the paper has none, and it has not been measured at this scale).
     "paper": LocalizeConfig(top_k=5, query_keypoints=2048, depth_guided=False),
     # Two CPU cores: top-5 retrieval (as the paper), 1024 query keypoints, depth-guided
-    # sampling of every second patch sample (render_stride 2: 64 rays per 15 x 15 patch, the
+    # sampling of every second patch sample (render_grid 8: 64 rays per 15 x 15 patch, the
     # rest interpolated; measured on dtu_scan24 with 16 + 8 samples: 55.4% own-keypoint rate
-    # against 55.0% at stride 1). Each patch's 4 corner rays (probe_grid 2) take 32 samples
+    # against 55.0% with every sample). Each patch's 4 corner rays (probe_grid 2) take 32 samples
     # around the keypoint's 3D point and every ray resamples 8 from their weights: 640 NeRF
     # evaluations per patch instead of 64 x (32 + 16) = 3072. benchmarks.fidelity --views 6
     # (own-keypoint rate, same maps): scan24 67.4% against 71.4% (16 resampled: 72.2% at
@@ -323,7 +323,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 guided_passes=1, guided_sources=("render",),
                                 guided_radius=4.0, guided_threshold_px=2.0,
                                 guided_reuse_inliers=True, guided_keypoints=96,
-                                render_stride=2, early_exit_inliers=24, render_chunk=2048,
+                                render_grid=8, early_exit_inliers=24, render_chunk=2048,
                                 track=TrackConfig(min_retrieval_overlap=2)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).

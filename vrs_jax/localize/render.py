@@ -86,31 +86,29 @@ def sampler(field: Field, nerf_cfg, cfg: LocalizeConfig) -> Callable[..., dict[s
     return lambda o, d, r, n, f: render_rays(field, o, d, r, n, f, None, nerf_cfg)
 
 
-def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Array,
-                  nerf_cfg, cfg: LocalizeConfig) -> Array:
-    """Colours [Kp, P', P', 3] of the patches' rendered rays (every ``render_stride``-th
-    sample of the full grid), their samples placed by a few probe rays per patch.
+def render_probed(field: Field, kp: Array, K: Array, R: Array, t: Array, dist: Array | None,
+                  depth: Array, n_kp: Array, patches: PatchConfig, nerf_cfg,
+                  cfg: LocalizeConfig) -> Array:
+    """Colours [Kp, S, S, 3] of the patches' rendered rays (S = :func:`render_side` per
+    side), their samples placed by a few probe rays per patch.
 
-    ``probe_grid`` x ``probe_grid`` rays of each patch's full grid (both ends of every row
-    and column) take the depth-guided first pass, ``narrow_samples`` evenly spaced around
-    the keypoint's point depth (``depth`` [Kp]); every ray of the patch shares that window.
-    Their weights, interpolated bilinearly over the patch, are the proposal from which each
-    rendered ray draws its ``narrow_fine`` samples (mip-NeRF's fine level, with the coarse
-    level of the neighbouring probes instead of its own: the rays of one patch are a few
-    pixels apart and cross the same surface). pr: the full grid [Kp, P, P, ...]; n_kp: the
-    valid keypoints, a prefix of the rows.
+    ``probe_grid`` x ``probe_grid`` rays spread over each patch (both ends of every row and
+    column: its corners for 2) take the depth-guided first pass, ``narrow_samples`` evenly
+    spaced around the keypoint's point depth (``depth`` [Kp]); every ray of the patch shares
+    that window. Their weights, interpolated bilinearly over the patch, are the proposal
+    from which each rendered ray draws its ``narrow_fine`` samples (mip-NeRF's fine level,
+    with the coarse level of the neighbouring probes instead of its own: the rays of one
+    patch are a few pixels apart and cross the same surface). kp: [Kp, 4] keypoints of the
+    camera (K, R, t, dist); n_kp: the valid keypoints, a prefix of the rows.
     """
-    g, stride = cfg.probe_grid, cfg.render_stride
-    P = pr.radii.shape[1]
-    step = (P - 1) // (g - 1)
+    g, side = cfg.probe_grid, render_side(patches, cfg)
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    probe = jax.tree.map(lambda x: x[:, ::step, ::step], pr)  # [Kp, g, g, ...]
+    probe = rays_mod.patch_rays(kp, K, R, t, patches, dist, g)  # [Kp, g, g, ...]
     near, far = rays_mod.narrow_interval(depth, cfg.depth_margin, probe.radii.shape)
     coarse = lambda o, d, r, n, f: render_rays_narrow(  # noqa: E731
         field, o, d, r, n, f, None, nerf_cfg, cfg.narrow_samples)
     # chunks of as many patches as the rendered rays' chunks hold: a chunk of probes past
     # the last valid keypoint is skipped as the rendered rays' are
-    side = (P - 1) // stride + 1
     per_chunk = max(1, cfg.render_chunk // (side * side)) * g * g
     out = render_flat(coarse, (flat(probe.origins), flat(probe.directions), flat(probe.radii),
                                flat(near), flat(far)), n_kp * g * g,
@@ -121,9 +119,9 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Arra
     # the probes' intervals, one window a patch (computed, not read back: a skipped chunk's
     # zeros would make empty intervals)
     t_vals = stratified_t_vals(None, near[:, 0, 0], far[:, 0, 0], cfg.narrow_samples, False)
-    W = jnp.asarray(interpolation_matrix(g, step)[::stride])  # [P', g]
-    w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, P', P', S]
-    rays = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
+    W = jnp.asarray(resample_matrix(g, side))  # [S, g]
+    w_rays = jnp.einsum("ia,kabs,jb->kijs", W, weights, W)  # [Kp, S, S, N]
+    rays = rays_mod.patch_rays(kp, K, R, t, patches, dist, side)
     t_rays = jnp.broadcast_to(t_vals[:, None, None], (kp_n, side, side, t_vals.shape[-1]))
     fine = lambda o, d, r, t, w: render_rays_resampled(  # noqa: E731
         field, o, d, r, t, w, None, nerf_cfg, cfg.narrow_fine)
@@ -132,10 +130,19 @@ def render_probed(field: Field, pr: rays_mod.PatchRays, depth: Array, n_kp: Arra
     return rgb.reshape(kp_n, side, side, 3)
 
 
+def render_side(patches: PatchConfig, cfg: LocalizeConfig) -> int:
+    """Rays per patch row and column that render mode renders: ``cfg.render_grid``, or the
+    patch size P (0: every sample)."""
+    return cfg.render_grid or patches.size
+
+
 def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Array, R: Array,
                      t: Array, dist: Array | None, near: Array, far: Array,
                      patches: PatchConfig, nerf_cfg, cfg: LocalizeConfig) -> Array:
     """Rendered grey patches [Kp, P, P] of keypoints seen by one camera, with one field.
+
+    S x S rays spread over each patch (:func:`render_side`) are rendered and, when S < P,
+    interpolated bilinearly onto the P x P grid.
 
     Args:
       kp: [Kp, 4] keypoints (x, y, scale, angle) in that camera; mask: [Kp] bool valid rows
@@ -143,19 +150,14 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
         keypoint's 3D point (the depth-guided interval); K, R, t, dist: the camera;
       near, far: the full sampler's ray interval, [] or per keypoint [Kp].
     """
-    P = patches.size
-    pr = rays_mod.patch_rays(kp, K, R, t, patches, dist)
-    stride = cfg.render_stride
+    P, side = patches.size, render_side(patches, cfg)
     check_grids(patches, cfg)
     n_kp = jnp.sum(mask)
     if cfg.probe_grid > 0:
-        rgb = render_probed(field, pr, depth, n_kp, nerf_cfg, cfg)
-        P = rgb.shape[1]
+        rgb = render_probed(field, kp, K, R, t, dist, depth, n_kp, patches, nerf_cfg, cfg)
     else:
-        if stride > 1:
-            pr = jax.tree.map(lambda x: x[:, ::stride, ::stride], pr)
-            P = pr.radii.shape[1]
-        shape = (kp.shape[0], P, P)
+        pr = rays_mod.patch_rays(kp, K, R, t, patches, dist, side)
+        shape = (kp.shape[0], side, side)
         if cfg.depth_guided:
             near_r, far_r = rays_mod.narrow_interval(depth, cfg.depth_margin, shape)
         else:  # one interval for all rows ([]) or one per row ([Kp])
@@ -176,45 +178,46 @@ def render_keypoints(field: Field, kp: Array, mask: Array, depth: Array, K: Arra
         else:
             flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
             rgb = render_flat(render, (flat(pr.origins), flat(pr.directions), flat(pr.radii),
-                                       flat(near_r), flat(far_r)), n_kp * P * P, cfg)["rgb"]
+                                       flat(near_r), flat(far_r)), n_kp * side * side,
+                              cfg)["rgb"]
             rgb = rgb.reshape(shape + (3,))
     gray = rgb_to_gray(rgb)
-    if stride > 1:
-        W = jnp.asarray(interpolation_matrix(P, stride))  # [P_full, P]
+    if side < P:
+        W = jnp.asarray(resample_matrix(side, P))  # [P, S]
         gray = jnp.einsum("ia,kab,jb->kij", W, gray, W)
     return gray
 
 
 def check_grids(patches: PatchConfig, cfg: LocalizeConfig) -> None:
-    """VrsError unless the config's strided and probe grids fit the patch grid (static):
-    both need canonical patches with P - 1 a multiple of their step, and probes need the
-    depth-guided sampler (they search around the keypoint's point depth)."""
-    P = patches.size
-    stride, g = cfg.render_stride, cfg.probe_grid
-    if stride > 1 and (patches.mode == "literal" or (P - 1) % stride):
-        raise VrsError(f"render_stride {stride} needs canonical patches with P - 1 a "
-                       f"multiple of it (P = {P}, mode {patches.mode})")
+    """VrsError unless the config's render and probe grids fit the patch (static): fewer
+    rays than samples per side, or probes, need canonical patches (literal patches are
+    whole pixels), at most P per side; probes need the depth-guided sampler (they search
+    around the keypoint's 3D point)."""
+    P, g, side = patches.size, cfg.probe_grid, cfg.render_grid
+    if side > P or (0 < side < P and patches.mode == "literal"):
+        raise VrsError(f"render_grid {side} needs canonical patches and at most P = {P} rays "
+                       f"per side (mode {patches.mode})")
     if g > 0:
-        if patches.mode == "literal" or (P - 1) % (g - 1):
-            raise VrsError(f"probe_grid {g} needs canonical patches with P - 1 a multiple of "
-                           f"probe_grid - 1 (P = {P}, mode {patches.mode})")
+        if patches.mode == "literal" or g > P:
+            raise VrsError(f"probe_grid {g} needs canonical patches and at most P = {P} "
+                           f"probes per side (mode {patches.mode})")
         if not cfg.depth_guided or cfg.narrow_fine < 1:
             raise VrsError("probe_grid needs depth_guided sampling with narrow_fine >= 1 "
                            "(the probes search around the keypoint's 3D point, every ray "
                            "resamples from them)")
 
 
-def interpolation_matrix(n: int, stride: int) -> np.ndarray:
-    """[(n - 1) * stride + 1, n] float32: linear interpolation of n samples onto the grid
-    ``stride`` times finer whose every stride-th sample they are (both ends shared)."""
-    m = (n - 1) * stride + 1
-    pos = np.arange(m) / stride
-    i0 = np.minimum(np.floor(pos).astype(int), n - 2) if n > 1 else np.zeros(m, int)
-    frac = pos - i0
-    W = np.zeros((m, n), np.float32)
-    W[np.arange(m), i0] = 1.0 - frac
-    if n > 1:
-        W[np.arange(m), i0 + 1] += frac
+def resample_matrix(n_from: int, n_to: int) -> np.ndarray:
+    """[n_to, n_from] float32: linear interpolation from n_from evenly spaced samples of a
+    segment (both ends included) onto n_to evenly spaced samples of the same segment; a
+    target that falls on a source sample copies it."""
+    pos = np.arange(n_to) * ((n_from - 1) / max(n_to - 1, 1))  # in source samples
+    i0 = np.minimum(np.floor(pos + 1e-9).astype(int), max(n_from - 2, 0))
+    frac = np.clip(pos - i0, 0.0, 1.0) if n_from > 1 else np.zeros(n_to)
+    W = np.zeros((n_to, n_from), np.float32)
+    W[np.arange(n_to), i0] = 1.0 - frac
+    if n_from > 1:
+        W[np.arange(n_to), i0 + 1] += frac
     return W
 
 
@@ -419,9 +422,8 @@ def rays_per_query(m: Map, cfg: LocalizeConfig) -> float:
 
 
 def rays_per_patch(m: Map, cfg: LocalizeConfig) -> int:
-    """Rays rendered per keypoint patch: P^2, or ((P - 1) / render_stride + 1)^2."""
-    size = (cfg.patches or m.config.features.patches).size
-    return ((size - 1) // cfg.render_stride + 1) ** 2
+    """Rays rendered per keypoint patch: P^2, or render_grid^2."""
+    return render_side(cfg.patches or m.config.features.patches, cfg) ** 2
 
 
 def nerf_evals_per_ray(m: Map, cfg: LocalizeConfig) -> float:
