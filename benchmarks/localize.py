@@ -18,7 +18,8 @@ scene size (median distance of the cameras to their centroid), failures and fall
 distinct inliers, the median time per query of each stage (query preparation separately; a
 warm-up query compiles first), rays and NeRF evaluations per query, and map bytes. Each run
 is measured afresh and recorded in WORK/runs/ (the ablation and figures reuse those
-records).
+records). ``--repeat N`` runs the render and real rows N times, the modes in turn, and reports
+each stage's median time over the runs: on a shared machine one run's times move 15-30%.
 """
 
 from __future__ import annotations
@@ -56,6 +57,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--localize", action="append", default=[], metavar="KEY=VALUE",
                    help="override a number/bool LocalizeConfig field in the render and real "
                         "rows (repeatable), e.g. early_exit_inliers=40 or guided_passes=0")
+    p.add_argument("--repeat", type=int, default=1, metavar="N",
+                   help="run every render/real row N times, the modes in turn (render, real, "
+                        "render, real, ...), and report each stage's median time over the N "
+                        "runs (each run's times stay in the JSON; accuracy is the first run's, "
+                        "and the row says whether every run gave the same poses). Times on a "
+                        "shared or throttled machine move 15-30%% between runs: a ratio of "
+                        "modes is only as good as N")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
     common.add_overwrite_arg(p)
@@ -163,9 +171,47 @@ def latency_table(rows: list[dict]) -> str:
               "and the median; the SIFT reference's times are in the JSON")
 
 
+def mode_cfg(ctx: common.SceneCtx, mode: str, args, overrides: dict):
+    """The LocalizeConfig of a render / render-full / real row: the map's named config with
+    the command's overrides (top-k, sampling, --localize)."""
+    over = dict(overrides)
+    if args.top_k is not None:
+        over["top_k"] = args.top_k
+    if mode == "render-full" or (mode == "render" and args.full_sampling):
+        over["depth_guided"] = False
+    return common.localize_cfg(ctx, "render" if mode == "render-full" else mode, **over)
+
+
+def repeated(summaries: list[dict]) -> dict:
+    """One summary of N runs of the same config: the first run's accuracy and counts, each
+    stage's median time over the runs (and ``localize_s_per_query``, their sum, as one run
+    reports it); with N > 1 ``repeats`` holds each run's ``timing_s`` and
+    ``localize_s_per_query`` and ``same_poses`` (every run's per-query errors equal the
+    first's)."""
+    import numpy as np
+
+    first = summaries[0]
+    if len(summaries) == 1:
+        return first
+    timing = {k: (None if first["timing_s"][k] is None else
+                  float(np.median([s["timing_s"][k] for s in summaries])))
+              for k in first["timing_s"]}
+    errors = lambda s: (s["per_query"]["t_err_m"], s["per_query"]["R_err_deg"])  # noqa: E731
+    return {**first, "timing_s": timing,
+            "localize_s_per_query": float(sum(timing.get(k) or 0.0 for k in STAGES)),
+            "repeats": {"n": len(summaries),
+                        "timing_s": [s["timing_s"] for s in summaries],
+                        "localize_s_per_query": [s["localize_s_per_query"] for s in summaries],
+                        "same_poses": all(errors(s) == errors(first) for s in summaries)}}
+
+
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.repeat < 1:
+        from vrs_jax.errors import VrsError
+
+        raise VrsError(f"--repeat must be >= 1, got {args.repeat}")
     common.check_outputs(args, [common.json_path(args, "localize")])
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if not modes or any(m not in MODES for m in modes):
@@ -181,29 +227,41 @@ def main(argv: list[str] | None = None) -> int:
         maps[ctx.name] = common.map_info(ctx)
         c = ctx.scene.centers[np.asarray(ctx.scene.has_pose, bool)]
         scale = metrics.scene_scale(c)
+        cfgs = {mode: mode_cfg(ctx, mode, args, overrides) for mode in modes
+                if mode != "sift"}
+        runs: dict[str, list[dict]] = {mode: [] for mode in cfgs}
+        for _ in range(args.repeat):  # the modes in turn, so that a slow spell hits both
+            for mode, cfg in cfgs.items():
+                runs[mode].append(common.localize_run(ctx, cfg, args.work, fresh=True,
+                                                      progress=not args.quiet))
         for mode in modes:
             if mode == "sift":
                 rows.append(sift_row(ctx, args, scale))
                 continue
-            over = dict(overrides)
-            if args.top_k is not None:
-                over["top_k"] = args.top_k
-            if mode == "render-full" or (mode == "render" and args.full_sampling):
-                over["depth_guided"] = False
-            cfg = common.localize_cfg(ctx, "render" if mode == "render-full" else mode, **over)
-            s = common.localize_run(ctx, cfg, args.work, fresh=True, progress=not args.quiet)
-            for label, summary in ((f"{mode} pass 1", s.get("first_pass")), (mode, s)):
-                if summary is None:
+            s = runs[mode][0]
+            for label, pick in ((f"{mode} pass 1", lambda r: r.get("first_pass")),
+                                (mode, lambda r: r)):
+                if pick(s) is None:
                     continue
+                summary = repeated([pick(r) for r in runs[mode]])
                 row = row_of(ctx.name, label, {**summary, "reused": s["reused"],
                                                "record": s["record"]})
                 row.update(relative(summary, scale))
-                row["localize_config"] = dataclasses.asdict(cfg)
+                row["localize_config"] = dataclasses.asdict(cfgs[mode])
+                if args.repeat > 1:
+                    row["repeats"] = summary["repeats"]
                 rows.append(row)
     print()
     print(accuracy_table(rows))
     print()
     print(latency_table(rows))
+    if args.repeat > 1:
+        differ = [f"{r['scene']} / {r['mode']}" for r in rows
+                  if "repeats" in r and not r["repeats"]["same_poses"]]
+        print(f"times: each stage's median over {args.repeat} runs of every mode, the modes "
+              f"in turn; accuracy: the first run's"
+              + (f" (other poses in a later run: {', '.join(differ)})" if differ
+                 else " (every run gave the same poses)"))
     for s in skipped:
         print(f"skipped {s['scene']}: {s['reason']}")
     doc.update({"maps": maps, "rows": rows, "skipped": skipped})

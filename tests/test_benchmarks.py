@@ -118,6 +118,28 @@ def test_guided_runs_report_their_first_pass(base, tmp_path):
     assert again["reused"] and again["first_pass"]["per_query"] == first["per_query"]
 
 
+def test_repeated_runs_report_the_median_time_of_each_stage(base, tmp_path, capsys):
+    """--repeat 3: each render/real row's stage times are the medians of its three runs
+    (kept in the row), its accuracy the first run's, and the runs gave the same poses."""
+    out = tmp_path / "rep.json"
+    assert localize.main(base + ["--scenes", "synthetic", "--modes", "real,render",
+                                 "--repeat", "3", "--json", str(out)]) == 0
+    assert "every run gave the same poses" in capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    assert [r["mode"] for r in doc["rows"]] == ["real", "render"]
+    for r in doc["rows"]:
+        rep = r["repeats"]
+        assert rep["n"] == 3 and rep["same_poses"] and len(rep["timing_s"]) == 3
+        for k in ("matching", "ransac", "query_preparation"):
+            assert r["timing_s"][k] == pytest.approx(
+                float(np.median([t[k] for t in rep["timing_s"]])))
+        assert r["localize_s_per_query"] == pytest.approx(
+            sum(r["timing_s"][k] or 0.0 for k in localize.STAGES))
+        assert len(rep["localize_s_per_query"]) == 3
+    assert localize.main(base + ["--scenes", "synthetic", "--repeat", "0", "--json",
+                                 str(tmp_path / "x.json")]) == 2
+
+
 def test_ablation_reuses_the_localize_runs(base, localize_doc, tmp_path):
     # (other patch sizes run the same code path as the localize benchmark's fresh runs; the
     # render benchmark test covers a P other than the map's)
