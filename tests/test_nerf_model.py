@@ -161,8 +161,11 @@ def test_window_loss_of_an_empty_field_is_the_background_error_of_rays_with_dept
                                    jax.random.key(0), cfg)) == 0.0
 
 
-def test_flop_count_matches_xla_cost_analysis():
-    cfg = get_config("test", use_viewdirs=False)
+@pytest.mark.parametrize("viewdirs", [False, True])
+def test_flop_count_matches_xla_cost_analysis(viewdirs):
+    # with view directions: the bottleneck and view_0 are one product (counted so), the
+    # per-ray direction layer and the per-call kernel product are the few % left over
+    cfg = get_config("test", use_viewdirs=viewdirs)
     params = model.init_params(jax.random.key(0), cfg)
     dx, dv = model.feature_dims(cfg)
     x, v = jnp.zeros((64, 8, dx)), jnp.zeros((64, dv))

@@ -71,7 +71,7 @@ class MipMLP(nn.Module):
         raw_density = dense(1, name="density")(x)[..., 0].reshape(n_rays, n_samples)
         if self.use_viewdirs:
             # mip-NeRF's bottleneck has no activation: it and the view head's first layer are
-            # one affine map, applied as one product (a third fewer FLOPs in the colour path)
+            # one affine map, applied as one product (half the colour path's products)
             kb, bb = Linear(self.net_width, name="bottleneck")(x.shape[-1])
             kv, bv = Linear(self.net_width_condition, name="view_0")(self.net_width)
             h = x @ (kb @ kv) + (bb @ kv + bv)
@@ -133,7 +133,9 @@ def count_params(params: Any) -> int:
 
 
 def mlp_flops_per_sample(cfg: NerfConfig) -> int:
-    """Multiply-adds x 2 of one MLP evaluation (forward), view head amortised per ray."""
+    """Multiply-adds x 2 of one MLP evaluation (forward) as :class:`MipMLP` computes it: the
+    bottleneck and the view head's first layer as one product, the view direction's part of
+    that layer (per ray) and the product of their kernels (per call) left out."""
     dx, _ = feature_dims(cfg)
     w = cfg.net_width
     macs, d_in = 0, dx
@@ -142,7 +144,7 @@ def mlp_flops_per_sample(cfg: NerfConfig) -> int:
         d_in = w + (dx if cfg.skip_layer > 0 and i % cfg.skip_layer == 0 and i > 0 else 0)
     macs += d_in  # density
     if cfg.use_viewdirs:
-        macs += d_in * w + w * cfg.net_width_condition
+        macs += d_in * cfg.net_width_condition  # bottleneck and view_0: one affine map
         macs += (cfg.net_depth_condition - 1) * cfg.net_width_condition ** 2
         macs += cfg.net_width_condition * 3
     else:
