@@ -293,10 +293,13 @@ def test_grid_and_top_view():
 
 
 def test_bad_arguments_and_missing_data(tmp_path, capsys):
-    assert localize.main(["--scenes", "nosuch", "--work", str(tmp_path)]) == 2
+    # --json in tmp_path: the default (outputs/benchmarks/NAME.json under the working folder)
+    # may exist from a user's run, and an existing output is refused first
+    js = lambda name: ["--json", str(tmp_path / f"{name}.json")]  # noqa: E731
+    assert localize.main(["--scenes", "nosuch", "--work", str(tmp_path), *js("l")]) == 2
     assert "unknown scene" in capsys.readouterr().err
-    assert map_size.main(["--map", "nowhere", "--work", str(tmp_path)]) == 2
-    assert ablation.main(["--sizes", "10", "--work", str(tmp_path)]) == 2
+    assert map_size.main(["--map", "nowhere", "--work", str(tmp_path), *js("m")]) == 2
+    assert ablation.main(["--sizes", "10", "--work", str(tmp_path), *js("a")]) == 2
     out = tmp_path / "ms.json"
     assert map_size.main(["--scenes", "fern", "--data-root", str(tmp_path / "none"),
                           "--work", str(tmp_path), "--json", str(out)]) == 0
