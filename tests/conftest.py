@@ -9,19 +9,68 @@ import pytest
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
+
+def _xla_flags_for_tests() -> str:
+    """XLA_FLAGS with XLA's LLVM back end at -O0, unless they name a level themselves. The
+    suite's arrays are tiny, so its time is compiling (165 of 233 s in tests/test_localize.py
+    at XLA's default level 3, 116 of 197 s in test_nerf_train.py + test_localize_render.py):
+    at -O0 those two modules took 19% less time. The numerics tests run again at the default
+    level in CI's second numeric setting (.ci/run)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" in flags:
+        return flags
+    return f"{flags} --xla_backend_optimization_level=0".strip()
+
+
+os.environ["XLA_FLAGS"] = _xla_flags_for_tests()
+
+
+def xla_flags_with(*extra: str) -> str:
+    """The tests' XLA_FLAGS (this process's) with ``extra`` flags added, for subprocesses,
+    minus any device count (a subprocess asks for its own)."""
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split()
+            if "xla_force_host_platform_device_count" not in f]
+    return " ".join(kept + list(extra))
+
 _DEFAULT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SHARED_DATA = Path(os.environ.get("VRS_SHARED_DATA", _DEFAULT)).resolve()
 
 
+def _map_count_limit() -> int:
+    """Half the kernel's memory-mapping limit (vm.max_map_count; 65,530 by default)."""
+    try:
+        return int(Path("/proc/sys/vm/max_map_count").read_text()) // 2
+    except (OSError, ValueError):
+        return 0
+
+
+def _map_count() -> int | None:
+    """This process's memory mappings now (None where /proc is not there)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None
+
+
+_MAP_LIMIT = _map_count_limit()
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
-    """After each test module, drop JAX's compiled programs. Every XLA CPU executable holds
-    about three memory mappings of its own (code, constants, data); jax's caches keep them
-    all, so one pytest process running the whole suite reached 64,994 mappings against the
-    kernel's vm.max_map_count of 65,530, an XLA compile then failed, and the C++ exception's
-    unwinding crashed and deadlocked in pycolmap's failure handler (the hang the README
-    describes; tests/test_nerf_train.py alone ends with 4,444 mappings, 851 with this)."""
+    """After a test module, drop JAX's compiled programs once this process holds more than
+    half the kernel's memory mappings (every module where that cannot be read). Every XLA CPU
+    executable holds about three mappings of its own (code, constants, data); jax's caches
+    keep them all, so one pytest process running the whole suite reached 64,994 mappings
+    against the kernel's vm.max_map_count of 65,530, an XLA compile then failed, and the C++
+    exception's unwinding crashed and deadlocked in pycolmap's failure handler (the hang the
+    README describes; tests/test_nerf_train.py alone ends with 4,444 mappings). Dropping them
+    after every module instead recompiled the programs the modules share (the ``test``
+    configs' localize on the session's tiny map) in each of them."""
     yield
+    count = _map_count()
+    if count is not None and count <= _MAP_LIMIT:
+        return
     import gc
 
     import jax

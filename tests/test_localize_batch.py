@@ -52,7 +52,9 @@ _SCRIPT = textwrap.dedent("""
 
 
 def test_sharded_batch_equals_unsharded_on_two_devices(tiny_map, small_synthetic_scene):
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+    from conftest import xla_flags_with
+
+    env = dict(os.environ, XLA_FLAGS=xla_flags_with("--xla_force_host_platform_device_count=2"),
                JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO), TF_CPP_MIN_LOG_LEVEL="2")
     r = subprocess.run([sys.executable, "-c", _SCRIPT, str(tiny_map),
                         str(small_synthetic_scene)], env=env, capture_output=True, text=True,

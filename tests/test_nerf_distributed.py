@@ -34,8 +34,10 @@ def _free_port() -> int:
 
 def _start(args: list[str], ids) -> list[subprocess.Popen]:
     """The processes ``args + --process-id I`` for I in ``ids``, one CPU device each."""
+    from conftest import xla_flags_with
+
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
-    env.pop("XLA_FLAGS", None)  # one CPU device per process
+    env["XLA_FLAGS"] = xla_flags_with()  # one CPU device per process
     return [subprocess.Popen(args + ["--process-id", str(i)], cwd=REPO, env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             for i in ids]

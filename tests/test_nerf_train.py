@@ -220,7 +220,9 @@ _SHARD_SCRIPT = textwrap.dedent("""
 
 
 def test_sharded_step_equals_unsharded_on_two_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+    from conftest import xla_flags_with
+
+    env = dict(os.environ, XLA_FLAGS=xla_flags_with("--xla_force_host_platform_device_count=2"),
                JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
     r = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT], env=env, capture_output=True,
                        text=True, timeout=300)
