@@ -12,6 +12,7 @@ from vrs_jax import geometry, localize, maps
 from vrs_jax.data.readers import load_scene
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import stages, track
+from vrs_jax.localize.confidence import ConfidenceConfig
 from vrs_jax.localize.localizer import Localizer
 
 # Render mode with one guided pass localizes tiny_map's queries within 5 cm
@@ -19,10 +20,20 @@ from vrs_jax.localize.localizer import Localizer
 MAX_T_M, MAX_R_DEG = 0.05, 2.0
 
 
+# The confidence's camera-centre test at 0.06 of the scene scale instead of 0.04 (calibrated on
+# real photographs): on this 160x120 stream the right poses' centre deviation measures
+# 0.024-0.05 of the scale, so at 0.04 whether a right frame is tracked or relocalized flipped
+# with the tiny map's last bits (a map trained at XLA's -O0 instead of -O3 relocalized frames
+# 8 and 9 after the jump below, every pose within 1.5 cm). The jump frame's tracking pass is
+# rejected at either value.
+MAX_CENTRE_STD = 0.06
+
+
 @pytest.fixture(scope="module")
 def loc(tiny_map):
     m = maps.load_map(tiny_map).without_descriptors()
-    return Localizer(m, localize.get_config("test", guided_passes=1))
+    conf = ConfidenceConfig(max_centre_std=MAX_CENTRE_STD)
+    return Localizer(m, localize.get_config("test", guided_passes=1, confidence=conf))
 
 
 @pytest.fixture(scope="module")
