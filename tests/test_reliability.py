@@ -73,13 +73,6 @@ def run_cli(module: str, args: list[str], fsize: int | None = None, timeout: flo
                           capture_output=True, timeout=timeout)
 
 
-def _terminal_sigint() -> None:
-    """In the child before exec: SIGINT as a terminal gives it (default). A test run started
-    in the background (``cmd &`` without job control, as CI scripts do) ignores SIGINT, the
-    child inherits that and Python then installs no handler: Ctrl-C would do nothing."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def interrupt_program(code: str, first_line: str, wait: float = 0.5,
                       path: Path | None = None) -> tuple[int, str, str]:
     """Run ``python -c CODE``, send SIGINT ``wait`` s after it prints ``first_line``:
@@ -87,8 +80,7 @@ def interrupt_program(code: str, first_line: str, wait: float = 0.5,
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, [REPO, path] if path else
                                                           [REPO]))}
     p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, text=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         preexec_fn=_terminal_sigint)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert p.stdout.readline() == first_line + "\n"
         time.sleep(wait)
@@ -1540,8 +1532,7 @@ def test_ctrl_c_while_a_benchmark_starts_is_one_line(tmp_path):
                                  "time.sleep(30)\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(tmp_path)])}
     p = subprocess.Popen([sys.executable, "-m", "benchpkg.slow"], cwd=tmp_path, env=env,
-                         text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         preexec_fn=_terminal_sigint)
+                         text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert p.stdout.readline() == "importing\n"
         time.sleep(0.3)
