@@ -100,16 +100,17 @@ def corner_indices(cell: list[Array], res: np.ndarray, dense: np.ndarray, table_
     return jnp.stack(out, axis=-1)
 
 
-def interpolate(table: Array, x: Array, res: np.ndarray, dense: np.ndarray) -> Array:
-    """Per-level trilinear interpolation of the tables at points in the unit cube.
+def cell_corners(x: Array, res: np.ndarray, dense: np.ndarray, table_size: int
+                 ) -> tuple[Array, tuple[Array, ...]]:
+    """The 8 table entries around each point on each level and their trilinear weights.
 
     Args:
-      table: [L, T, F] features; x: [N, 3] points in [0, 1]^3 (clipped);
-      res: [L] resolutions; dense: [L] bool (static numpy arrays).
+      x: [N, 3] points in [0, 1]^3 (clipped); res: [L] resolutions; dense: [L] bool
+        (static numpy arrays); table_size: T.
     Returns:
-      [N, L, F] interpolated features.
+      idx [N, L, 8] int32 into the flattened [L * T, F] table (:func:`corner_indices`) and
+      the weights, one [N, L] array per corner in :data:`CORNERS` order (summing to 1).
     """
-    n_levels, table_size, _ = table.shape
     res_f = jnp.asarray(res, x.dtype)
     # per axis [N, L] arrays: a trailing axis of 3 (or 8 x 3 corners) left XLA CPU unable
     # to vectorise the index arithmetic (the encoding ran 2x slower, the same values)
@@ -118,20 +119,60 @@ def interpolate(table: Array, x: Array, res: np.ndarray, dense: np.ndarray) -> A
     i0 = [jnp.clip(jnp.floor(p), 0.0, res_f - 1.0) for p in pos]
     frac = [p - i for p, i in zip(pos, i0, strict=True)]  # in [0, 1]
     idx = corner_indices([i.astype(jnp.uint32) for i in i0], res, dense, table_size)
-    # one gather from the flattened [L * T, F] table; indices are in range by construction
-    # (masked to T - 1, plus the level offset), so no bounds handling: on CPU the default
-    # (fill) mode makes the forward gather ~3x slower
-    vals = table.reshape(n_levels * table_size, -1).at[idx].get(
-        mode="promise_in_bounds")  # [N, L, 8, F]
-    # trilinear weights and their weighted sum written out per corner: as a reduction over
-    # the corner axis XLA CPU made the sum a tiny batched matrix product and the weights a
-    # select-reduce (together 40% of the encoding's time, gathers included)
     side = [(1.0 - f, f) for f in frac]  # per axis [N, L] each
+    return idx, tuple(side[0][cx] * side[1][cy] * side[2][cz] for cx, cy, cz in CORNERS)
+
+
+@jax.custom_vjp
+def weighted_gather(flat: Array, idx: Array, weights: tuple[Array, ...]) -> Array:
+    """sum_c weights[c] [N, L, None] * flat[idx[:, :, c]]: [N, L, F] (flat [L * T, F], idx
+    [N, L, 8] in range, weights 8 x [N, L]).
+
+    Forward: one gather from the flattened table (indices are in range by construction, so
+    no bounds handling: on CPU the default fill mode made it ~3x slower), then the weighted
+    sum written out per corner (as a reduction over the corner axis XLA CPU made the sum a
+    tiny batched matrix product and the weights a select-reduce: together 40% of the
+    encoding's time). Backward (custom): the table's cotangent is one scatter-add of
+    weights x cotangent laid out [N, L, 8, F]. Autodiff of the per-corner sum built that
+    array as the sum of 8 padded slices, recomputing every corner's weight for every element
+    (the transposed gather: more than half of ``cpu-small``'s training step on CPU).
+    """
+    vals = flat.at[idx].get(mode="promise_in_bounds")  # [N, L, 8, F]
     out = 0.0
-    for c, (cx, cy, cz) in enumerate(CORNERS):
-        w = side[0][cx] * side[1][cy] * side[2][cz]  # [N, L]
+    for c, w in enumerate(weights):
         out = out + w[..., None] * vals[:, :, c, :]
     return out
+
+
+def _weighted_gather_fwd(flat, idx, weights):
+    return weighted_gather(flat, idx, weights), (flat, idx, weights)
+
+
+def _weighted_gather_bwd(saved, ct):
+    flat, idx, weights = saved
+    upd = jnp.stack(weights, axis=-1)[..., None] * ct[:, :, None, :]  # [N, L, 8, F]
+    d_flat = jnp.zeros_like(flat).at[idx].add(upd, mode="promise_in_bounds")
+    # the weights' cotangents (the points' gradient; XLA drops them when nothing uses it)
+    vals = flat.at[idx].get(mode="promise_in_bounds")
+    d_weights = tuple(jnp.sum(vals[:, :, c, :] * ct, axis=-1) for c in range(len(weights)))
+    return d_flat, None, d_weights
+
+
+weighted_gather.defvjp(_weighted_gather_fwd, _weighted_gather_bwd)
+
+
+def interpolate(table: Array, x: Array, res: np.ndarray, dense: np.ndarray) -> Array:
+    """Per-level trilinear interpolation of the tables at points in the unit cube.
+
+    Args:
+      table: [L, T, F] features; x: [N, 3] points in [0, 1]^3 (clipped);
+      res: [L] resolutions; dense: [L] bool (static numpy arrays).
+    Returns:
+      [N, L, F] interpolated features (differentiable in ``table`` and ``x``).
+    """
+    n_levels, table_size, _ = table.shape
+    idx, weights = cell_corners(x, res, dense, table_size)
+    return weighted_gather(table.reshape(n_levels * table_size, -1), idx, weights)
 
 
 def level_weights(sigma: Array, res: np.ndarray) -> Array:
