@@ -29,25 +29,30 @@ def _np_index(corner, n, dense, table_size):
     return i % table_size
 
 
+def _np_corners(pt, res, dense, table_size):
+    """Loop-based float64 reference: (level, table index, trilinear weight) of each of the 8
+    corners of the point's cell on each level."""
+    for level, n in enumerate(int(r) for r in res):
+        pos = np.clip(np.asarray(pt, np.float64), 0, 1) * n
+        i0 = np.minimum(np.floor(pos), n - 1)
+        f = pos - i0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                         * (f[2] if dz else 1 - f[2]))
+                    c = i0.astype(int) + (dx, dy, dz)
+                    yield level, _np_index(c, n, dense[level], table_size), w
+
+
 def _np_interpolate(table, x, res, dense):
     """Loop-based float64 trilinear interpolation per level: [N, L, F]."""
     table = np.asarray(table, np.float64)
     n_levels, table_size, n_feat = table.shape
     out = np.zeros((len(x), n_levels, n_feat))
     for p, pt in enumerate(np.asarray(x, np.float64)):
-        for level in range(n_levels):
-            n = int(res[level])
-            pos = np.clip(pt, 0, 1) * n
-            i0 = np.minimum(np.floor(pos), n - 1)
-            f = pos - i0
-            for dx in (0, 1):
-                for dy in (0, 1):
-                    for dz in (0, 1):
-                        w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
-                             * (f[2] if dz else 1 - f[2]))
-                        c = i0.astype(int) + (dx, dy, dz)
-                        out[p, level] += w * table[level, _np_index(c, n, dense[level],
-                                                                    table_size)]
+        for level, i, w in _np_corners(pt, res, dense, table_size):
+            out[p, level] += w * table[level, i]
     return out
 
 
@@ -157,21 +162,10 @@ def test_gradients_are_finite_and_the_table_gradient_is_the_interpolation_weight
 
 def _np_table_gradient(table_shape, x, g, res, dense):
     """Loop-based d/dtable of sum(interpolate * g): each point adds its corner weight x g."""
-    n_levels, table_size, _ = table_shape
     out = np.zeros(table_shape)
     for p, pt in enumerate(np.asarray(x, np.float64)):
-        for level in range(n_levels):
-            n = int(res[level])
-            pos = np.clip(pt, 0, 1) * n
-            i0 = np.minimum(np.floor(pos), n - 1)
-            f = pos - i0
-            for dx in (0, 1):
-                for dy in (0, 1):
-                    for dz in (0, 1):
-                        w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
-                             * (f[2] if dz else 1 - f[2]))
-                        c = i0.astype(int) + (dx, dy, dz)
-                        out[level, _np_index(c, n, dense[level], table_size)] += w * g[p, level]
+        for level, i, w in _np_corners(pt, res, dense, table_shape[1]):
+            out[level, i] += w * g[p, level]
     return out
 
 
