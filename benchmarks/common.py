@@ -456,6 +456,7 @@ def localize_run(ctx: SceneCtx, cfg, work: str | Path, fresh: bool = False,
         s["measured_at"] = now()
         out[which] = s
     s = out["final"]
+    s["retried"] = info["retried"]  # per query retried: attempts made, the one kept
     s["first_pass"] = out["first"] if guided_on(cfg) else None
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, {"key": key, "summary": s})

@@ -117,7 +117,8 @@ def row_of(scene: str, mode: str, s: dict) -> dict:
             "nerf_evals_per_query_median": s.get("nerf_evals_per_query_median", 0.0),
             "full_image_evals_per_query": s.get("full_image_evals_per_query", 0.0),
             "map_bytes": s["map_bytes"],
-            "per_query": s["per_query"], "measured_at": s["measured_at"],
+            "per_query": s["per_query"], "retried": s.get("retried", {}),
+            "measured_at": s["measured_at"],
             "reused": s["reused"], "record": s["record"]}
 
 

@@ -79,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="paper-literal patches: axis-aligned whole pixels, no scale/rotation")
     p.add_argument("--top-k", type=count_at_least(1), default=None,
                    help="retrieved reference images")
+    p.add_argument("--retries", type=count_at_least(0), default=None,
+                   help="a query whose pose is not 'localized' is tried again with the next "
+                        "top-k references, up to this many times; the most confident result "
+                        "is kept (default: the config's)")
     p.add_argument("--full-sampling", action="store_true",
                    help="render with coarse+fine sampling instead of the depth-guided interval")
     p.add_argument("--sequence", action="store_true",
@@ -113,6 +117,8 @@ def make_config(m: maps.Map, args) -> localize.LocalizeConfig:
         over["patches"] = patches
     if args.top_k is not None:
         over["top_k"] = args.top_k
+    if args.retries is not None:
+        over["retries"] = args.retries
     if args.full_sampling:
         over["depth_guided"] = False
     return localize.get_config(args.config, **over)
@@ -242,6 +248,9 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
                                       cfg.pnp.min_inliers)
                             for n, r, c, v in zip(queries.names, results, conf, verdict,
                                                   strict=True)]
+    for pq in summary["per_query"]:  # retried queries: attempts made, the one kept
+        if pq["name"] in info.get("retried", {}):
+            pq["retry"] = info["retried"][pq["name"]]
     if tracks is not None:
         for pq, tr in zip(summary["per_query"], tracks, strict=True):
             pq.update(tracked=tr.tracked, by_check=tr.by_check, unconfirmed=tr.unconfirmed,

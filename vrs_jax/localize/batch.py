@@ -28,9 +28,11 @@ from tqdm import tqdm
 from vrs_jax.data.images import read_gray
 from vrs_jax.data.scene import Scene
 from vrs_jax.errors import VrsError
+from vrs_jax.localize.confidence import map_scale
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.query import Query, prepare_query
 from vrs_jax.localize.render import full_image_evals, nerf_evals_per_ray, rays_per_patch
+from vrs_jax.localize.retry import localize_with_retries
 from vrs_jax.localize.run import localize, localize_stacked, localize_timed
 from vrs_jax.localize.stages import STAGE_NAMES, LocalizeResult
 from vrs_jax.maps import Map
@@ -45,11 +47,15 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
 
     A query whose image cannot be used gets ``None`` and its reason in ``info["errors"]``.
     With ``timed``, a warm-up call is made first and each query is run stage by stage
-    (:func:`localize_timed`) to report median seconds per stage.
+    (:func:`localize_timed`) to report median seconds per stage. With ``cfg.retries`` a
+    query that is not "localized" is tried again with the next references
+    (:mod:`~vrs_jax.localize.retry`; its time and rendered patches are all its attempts');
+    ``info["retried"]``: per query retried, {"attempts": made, "kept": the attempt kept}.
     """
     results: list[LocalizeResult | None] = []
-    times, prep_s, errors = [], [], {}
-    warm = False
+    times, prep_s, errors, retried = [], [], {}, {}
+    warm: set[LocalizeConfig] = set()  # configs (attempts) whose stages are compiled
+    scale = map_scale(m)
     for i in tqdm(range(len(queries)), desc=f"localize ({cfg.source})", unit="query",
                   disable=not progress):
         t0 = time.perf_counter()
@@ -64,15 +70,26 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
             results.append(None)
             continue
         prep_s.append(time.perf_counter() - t0)
-        if timed:
-            if not warm:
-                localize_timed(m, q, cfg)  # compile every stage once
-                warm = True
-            res, tm = localize_timed(m, q, cfg)
-            times.append(tm)
-        else:
-            res = localize(m, q, cfg)
-        results.append(jax.device_get(res))
+        tms: list[dict[str, float]] = []  # per attempt: seconds per stage
+        made: list[LocalizeConfig] = []  # the attempts' configs
+
+        def once(c: LocalizeConfig, q=q, tms=tms, made=made) -> LocalizeResult:
+            made.append(c)
+            if not timed:
+                return localize(m, q, c)
+            if c not in warm:
+                localize_timed(m, q, c)  # compile every stage once
+                warm.add(c)
+            res, tm = localize_timed(m, q, c)
+            tms.append(tm)
+            return res
+
+        res, kept = localize_with_retries(m, q, cfg, once, scale)
+        if tms:  # a query's time is all its attempts'
+            times.append({k: sum(t[k] for t in tms) for k in tms[0]})
+        if len(made) > 1:
+            retried[queries.names[i]] = {"attempts": len(made), "kept": kept}
+        results.append(res)
     timing = {s: float(np.median([t[s] for t in times])) if times else None for s in STAGE_NAMES}
     timing["query_preparation"] = float(np.median(prep_s)) if prep_s else None
     rays = rays_rendered(m, cfg, results)
@@ -86,6 +103,7 @@ def localize_scene(m: Map, queries: Scene, cfg: LocalizeConfig, progress: bool =
         "timing_s": timing,
         "n_success": int(sum(bool(r.success) for r in results if r is not None)),
         "errors": errors,
+        "retried": retried,
     }
     return results, info
 

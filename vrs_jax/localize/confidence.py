@@ -302,6 +302,13 @@ def weakest_test(fields: Mapping[str, np.ndarray], scale: float,
     return np.where(has_pose(fields), low, "pnp").astype(object)
 
 
+def one_confidence(r, scale: float, cfg: ConfidenceConfig = ConfidenceConfig()
+                   ) -> tuple[float, str]:
+    """(confidence, verdict) of one LocalizeResult (or None: failed)."""
+    conf, verdict = pose_confidence(result_fields([r]), scale, cfg)
+    return float(conf[0]), str(verdict[0])
+
+
 def result_verdicts(m, results: Sequence, cfg: ConfidenceConfig = ConfidenceConfig()
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(confidence [N], verdict [N]) of a run's results (LocalizeResult or None: failed)

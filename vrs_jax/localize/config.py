@@ -133,6 +133,16 @@ class LocalizeConfig:
     # Retrieved reference images per query. The paper (like hloc on 7Scenes) uses a handful;
     # each one costs K_max * P^2 rendered rays, so 5 balances recall and render time.
     top_k: int = 5
+    # Retrieval ranks skipped: the references used are those ranked retrieval_offset ..
+    # retrieval_offset + top_k - 1 by global descriptor (fewer where the map has fewer). A
+    # retry (below) sets it; 0 otherwise.
+    retrieval_offset: int = 0
+    # A query whose pose is not "localized" (localize.confidence: uncertain, or failed) is
+    # localized again with the next top_k references by global descriptor, up to this many
+    # times while the map has references left; the result with the highest confidence is
+    # kept (localize.retry; hloc tries its retrieved images' covisibility clusters in turn).
+    # 0: one attempt.
+    retries: int = 0
     # Query keypoints kept (by SIFT response), padded to this static count (the detector's
     # other settings are the map's).
     query_keypoints: int = 1024
@@ -238,6 +248,8 @@ class LocalizeConfig:
         object.__setattr__(self, "source", src)
         if self.top_k < 1:
             raise VrsError("LocalizeConfig.top_k must be >= 1")
+        if self.retrieval_offset < 0 or self.retries < 0:
+            raise VrsError("LocalizeConfig.retrieval_offset and retries must be >= 0")
         if self.narrow_samples < 1 or self.narrow_fine < 0:
             raise VrsError("LocalizeConfig.narrow_samples must be >= 1 and narrow_fine >= 0")
         if not set(self.guided_sources) <= set(SOURCES):

@@ -30,8 +30,10 @@ import numpy as np
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
 from vrs_jax.localize import batch as batch_lib
+from vrs_jax.localize import retry as retry_lib
 from vrs_jax.localize import track as track_lib
 from vrs_jax.localize.cache import DescriptorCache
+from vrs_jax.localize.confidence import map_scale
 from vrs_jax.localize.config import LocalizeConfig, get_config
 from vrs_jax.localize.query import Query, prepare_query, stack_queries
 from vrs_jax.localize.render import first_pass_keypoints
@@ -84,6 +86,7 @@ class Localizer:
             self.map = map_or_dir
         else:
             self.map = load_map_for(map_or_dir, self.cfg.source)
+        self.scale = map_scale(self.map)  # the scene scale, for the confidence of retries
         self.mesh = batch_lib.query_mesh(devices)
         self._placed_map: Map | list[Map] | None = None
 
@@ -126,10 +129,14 @@ class Localizer:
 
     def localize_query(self, q: Query) -> LocalizeResult:
         """Localize a prepared query in full (retrieval, first pass, guided passes; the
-        descriptor cache when there is one) -> LocalizeResult of numpy values."""
-        if self.cache is None:
-            return jax.device_get(localize(self.map, q, self.cfg))
-        return jax.device_get(self._localize_cached(q))
+        descriptor cache when there is one; ``cfg.retries``: a pose that is not "localized"
+        tried again with the next references, :mod:`~vrs_jax.localize.retry`) ->
+        LocalizeResult of numpy values."""
+        def once(c: LocalizeConfig) -> LocalizeResult:
+            return (localize(self.map, q, c) if self.cache is None
+                    else self._localize_cached(q, c))
+
+        return retry_lib.localize_with_retries(self.map, q, self.cfg, once, self.scale)[0]
 
     def track(self, frames: Sequence[Any], K: np.ndarray, dist: np.ndarray | None = None,
               names: Sequence[str] | None = None, progress: bool = False,
@@ -162,7 +169,7 @@ class Localizer:
                                       self.localize_query, names=names, progress=progress,
                                       sizes=sizes)
 
-    def _localize_cached(self, q: Query) -> LocalizeResult:
+    def _localize_cached(self, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered
         and described (one jitted call per missing reference), then the remaining stages.
 
@@ -170,7 +177,7 @@ class Localizer:
         rendered best first, and with ``cfg.early_exit_inliers`` the rest are skipped once
         the descriptors at hand give a RANSAC seed with that many inliers (the rule of
         :func:`~vrs_jax.localize.stages.early_exit_render`)."""
-        m, cfg = self.map, self.cfg
+        m = self.map
         s = run_stages(m, q, cfg, until="retrieval", jitted=JITTED_STAGES)
         idx = np.asarray(s["idx"])
         # hits: cached references used; misses: references rendered (an early exit leaves
@@ -180,7 +187,8 @@ class Localizer:
         missing = np.flatnonzero(~have)
         n_rendered = 0
         for c in missing:
-            if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have):
+            if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have,
+                                                                             cfg):
                 break
             self.cache.get(int(idx[c]))  # a miss
             one = {"idx": jnp.asarray([idx[c]], jnp.int32)}
@@ -189,26 +197,28 @@ class Localizer:
             descs[c] = np.asarray(JITTED_STAGES["describe"](m, q, cfg, one)["desc"][0])
             have[c] = True
             self.cache.put(int(idx[c]), descs[c])
-        s.update(self._described(s, descs, have))
+        s.update(self._described(s, descs, have, cfg))
         s["n_rendered"] = jnp.int32(n_rendered)
         return run_stages(m, q, cfg, jitted=JITTED_STAGES, state=s, after="describe")["result"]
 
-    def _described(self, s: dict, descs: list, have: np.ndarray) -> dict:
+    def _described(self, s: dict, descs: list, have: np.ndarray, cfg: LocalizeConfig
+                   ) -> dict:
         """The describe stage's state from per-candidate descriptors (None: not rendered,
         masked out)."""
         blank = np.zeros_like(next(d for d in descs if d is not None))
         desc = np.stack([blank if d is None else d for d in descs])
-        mask = first_pass_keypoints(self.map, s["idx"], self.cfg) & jnp.asarray(have)[:, None]
+        mask = first_pass_keypoints(self.map, s["idx"], cfg) & jnp.asarray(have)[:, None]
         return {"desc": jnp.asarray(desc), "desc_mask": mask}
 
-    def _confident(self, q: Query, s: dict, descs: list, have: np.ndarray) -> bool:
+    def _confident(self, q: Query, s: dict, descs: list, have: np.ndarray,
+                   cfg: LocalizeConfig) -> bool:
         """Whether the candidates at hand already give a RANSAC seed with
         ``cfg.early_exit_inliers`` distinct inliers."""
-        st = {**s, **self._described(s, descs, have)}
+        st = {**s, **self._described(s, descs, have, cfg)}
         for name in ("matching", "ransac"):
-            st.update(JITTED_STAGES[name](self.map, q, self.cfg, st))
+            st.update(JITTED_STAGES[name](self.map, q, cfg, st))
         n = int(jnp.sum(st["inl0"] & st["ok"]))
-        return bool(st["ok_seed"]) and n >= self.cfg.early_exit_inliers
+        return bool(st["ok_seed"]) and n >= cfg.early_exit_inliers
 
     def localize_batch(self, images: Sequence[Any], Ks: Sequence[np.ndarray],
                        dists: Sequence[np.ndarray | None] | None = None

@@ -239,9 +239,13 @@ def check(m: Map, cfg: LocalizeConfig) -> None:
 
 
 def retrieval(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
-    """Top-k reference indices [k] int32 by global-descriptor similarity."""
-    idx, _ = topk(q.global_desc, m.egm.global_desc, min(cfg.top_k, m.egm.num_images))
-    return {"idx": idx}
+    """Reference indices [k] int32 by global-descriptor similarity: ranks
+    ``cfg.retrieval_offset`` .. + top_k - 1 (k = top_k, or the references left after the
+    offset; at least the last one)."""
+    n = m.egm.num_images
+    off = min(cfg.retrieval_offset, n - 1)
+    idx, _ = topk(q.global_desc, m.egm.global_desc, min(off + cfg.top_k, n))
+    return {"idx": idx[off:]}
 
 
 def render(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:

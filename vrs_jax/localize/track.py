@@ -50,7 +50,7 @@ from vrs_jax.localize import stages as st
 from vrs_jax.localize.confidence import (
     LOCALIZED_AT,
     map_scale,
-    pose_confidence,
+    one_confidence,
     result_fields,
     weakest_test,
 )
@@ -580,8 +580,7 @@ def weakest_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> str:
 
 def confidence_of(r: LocalizeResult, scale: float, cfg: LocalizeConfig) -> tuple[float, str]:
     """(confidence, verdict) of one result (localize.confidence)."""
-    conf, verdict = pose_confidence(result_fields([r]), scale, cfg.confidence)
-    return float(conf[0]), str(verdict[0])
+    return one_confidence(r, scale, cfg.confidence)
 
 
 def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
