@@ -296,7 +296,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # gain nothing (scan24 66.3%); 16 probe samples (576) kept lego's and the walk's rate and
     # recall on the six scenes but cost scan24 4.5 points (49.6% against 54.1%, 54 correct
     # matches per view against 64; README, "Each map point rendered once"). The first pass
-    # renders each candidate's 128 keypoints of the longest tracks, best candidate first,
+    # renders each candidate's 256 keypoints of the longest tracks, best candidate first,
     # less those whose 3D point an earlier candidate renders (first_pass_unique_points: on
     # the walk 48-65% of the 2nd-5th candidates' points were the 1st's), and stops once
     # RANSAC has 24 inliers (benchmarks.localize on the six scenes, the same maps, README
@@ -313,9 +313,22 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # within 2% (2 poses more than 5% off instead of 5, none reported localized instead of
     # 1); 143-218 k NeRF evaluations per query instead of 179-285 k, render / real time per
     # query with preparation 3.1-3.5x instead of 3.7-4.3x (lego 5.4x instead of 6.4x; README,
-    # "Render budget"). 128 first-pass keypoints are kept: 96 (with the 96-point guided
-    # budget) lost the walk 3 more queries within 1%. The earlier setting (192, 30; 48
-    # samples before that), measured with benchmarks.localize
+    # "Render budget"). 256 first-pass keypoints instead of 128, which is every keypoint a
+    # cpu-small map links per image (K_max 256 on all six benchmark maps; a map with more
+    # keeps the budget; the median query still renders one candidate, 256 x 640 + 96 x 640
+    # evaluations, before the early exit; benchmarks.localize
+    # --modes render,real on the six scenes' maps rebuilt on 1c04ac5, with the retry below;
+    # README "256 first-pass keypoints"): render mode's recall on the walk 64.5 / 74.2% ->
+    # 80.6 / 83.9% within 1% / 2% (median 0.38% -> 0.21%), no wrong pose reported
+    # localized instead of 1, right poses flagged 3 of 65 -> 1 of 66 on the real scenes, no
+    # scene loses a query (fern and lego the same, scan24's median 0.20% -> 0.22%); mean NeRF
+    # evaluations per query 141-145 k -> 205-224 k on the synthetic room, fox, scan24 and
+    # fern, the walk 216 k -> 314 k; render / real time with preparation 2.5-3.8x (scan24
+    # 3.8x) against 2.3-3.4x. (Without the retry, on fern, lego and the walk: 192 keypoints
+    # gave the walk 71.0 / 77.4%, 256 77.4 / 80.6%; every keypoint without
+    # first_pass_unique_points 74.2 / 80.6% at 320 k.) Earlier, 128 was kept over 96, which
+    # (with the 96-point guided budget) lost the walk 3 more queries within 1%. The earlier
+    # setting (192, 30; 48 samples before that), measured with benchmarks.localize
     # on the synthetic room, fern, lego, scan24 and fox together against the previous
     # setting (48 samples on every ray, every keypoint, an unbounded guided pass: 0.9-2.1 M
     # evaluations per query): 0.18-0.30 M evaluations, recall at 1% / 1 deg 35 of 37 real
@@ -338,7 +351,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # -> 152 k (1 of 13), the others unchanged; real mode retried none. A second retry
     # (retries=2) gained nothing more on lego and the walk (247 k on the walk).
     "cpu-small": LocalizeConfig(top_k=5, query_keypoints=1024, narrow_samples=32,
-                                narrow_fine=8, probe_grid=2, first_pass_keypoints=128,
+                                narrow_fine=8, probe_grid=2, first_pass_keypoints=256,
                                 first_pass_unique_points=True,
                                 guided_passes=1, guided_sources=("render",),
                                 guided_radius=4.0, guided_threshold_px=2.0,
