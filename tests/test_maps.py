@@ -192,9 +192,12 @@ def test_named_localize_config_comments_match_values():
             cpu.early_exit_inliers, cpu.render_chunk, cpu.guided_radius,
             cpu.guided_threshold_px, cpu.pnp.threshold_px, cpu.probe_grid,
             cpu.first_pass_keypoints, cpu.guided_reuse_inliers, cpu.guided_keypoints,
-            cpu.first_pass_unique_points) == (
-        5, 1024, True, 32, 8, 1, ("render",), 8, 24, 2048, 4.0, 2.0, 6.0, 2, 128, True, 96,
-        True)
+            cpu.first_pass_unique_points, cpu.retries) == (
+        5, 1024, True, 32, 8, 1, ("render",), 8, 24, 2048, 4.0, 2.0, 6.0, 2, 256, True, 96,
+        True, 1)
+    # "every keypoint a cpu-small map links per image": its k_max
+    assert cpu.first_pass_keypoints == maps.get_config("cpu-small").egm.k_max
+    assert (paper.retries, test.retries) == (0, 0)
     assert (test.top_k, test.query_keypoints, test.narrow_samples, test.narrow_fine,
             test.guided_passes) == (2, 256, 8, 4, 0)
 

@@ -69,6 +69,33 @@ def test_git_info_outside_a_checkout(tmp_path):
                                                                    "dirty": None}
 
 
+def test_git_info_leaves_the_index_alone(tmp_path):
+    """git_info never rewrites the checkout's index (``git --no-optional-locks``): a plain
+    ``git status`` refreshes stale stat data in .git/index under .git/index.lock, and a run
+    killed meanwhile left the lock behind in the user's checkout."""
+    import os
+    import shutil
+
+    if shutil.which("git") is None:
+        pytest.skip("git not installed")
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    env = dict(os.environ, GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@t",
+               GIT_COMMITTER_NAME="t", GIT_COMMITTER_EMAIL="t@t")
+    f = repo / "a.txt"
+    f.write_text("x\n")
+    for args in (["init", "-q"], ["add", "a.txt"], ["commit", "-q", "-m", "a"]):
+        subprocess.run(["git", "-C", str(repo), *args], check=True, env=env,
+                       capture_output=True)
+    st = f.stat()
+    os.utime(f, ns=(st.st_atime_ns + 5 * 10**9, st.st_mtime_ns + 5 * 10**9))  # stale index
+    index = (repo / ".git" / "index").read_bytes()
+    info = runrecord.git_info(repo)
+    assert info["commit"] == _git_head(repo) and info["dirty"] is False
+    assert (repo / ".git" / "index").read_bytes() == index
+    assert not (repo / ".git" / "index.lock").exists()
+
+
 def test_write_run_record_never_overwrites(tmp_path):
     out = tmp_path / "run_out"
     recs = [{"n": k, "x": math.inf} for k in range(3)]

@@ -92,9 +92,13 @@ def git_info(checkout: str | Path = CHECKOUT) -> dict[str, Any]:
     (an installed copy inside some other repository does not report that repository).
     """
     def git(*args: str) -> str | None:
+        # --no-optional-locks: ``git status`` otherwise refreshes the index under
+        # .git/index.lock, and a run killed meanwhile (kill -9 of its process group, or this
+        # timeout) left the lock behind, so the user's next commit in the checkout failed
+        # (seen after the test suite's kill tests)
         try:
-            r = subprocess.run(["git", "-C", str(checkout), *args], capture_output=True,
-                               text=True, timeout=10)
+            r = subprocess.run(["git", "--no-optional-locks", "-C", str(checkout), *args],
+                               capture_output=True, text=True, timeout=10)
         except (OSError, subprocess.SubprocessError):
             return None
         return r.stdout.strip() if r.returncode == 0 else None
