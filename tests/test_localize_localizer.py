@@ -96,6 +96,11 @@ def test_warmup_and_render_source(tiny_map):
     loc = Localizer(maps.load_map(tiny_map), localize.get_config("test"), source=None)
     assert loc.cfg.source == "render"
     loc.warmup(160, 120)  # blank image: compiles, no failure
+    # with a retry, the retry's config is compiled too: no query pays for it later
+    retry = Localizer(maps.load_map(tiny_map), localize.get_config("test", retries=1))
+    before = localize.localize._cache_size()
+    retry.warmup(160, 120)
+    assert localize.localize._cache_size() == before + 2
 
 
 def test_descriptor_cache_is_lru_within_budget():

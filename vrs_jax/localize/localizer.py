@@ -262,7 +262,8 @@ class Localizer:
 
     def warmup(self, width: int, height: int, track: bool = False) -> None:
         """Compile query preparation and ``localize`` for images of this size (a blank image:
-        no keypoints, so a fallback result, with the shapes of any query); with ``track``
+        no keypoints, so a fallback result, with the shapes of any query), once per attempt
+        ``cfg.retries`` allows (each retry's config is its own compilation); with ``track``
         also the tracking step of :meth:`track`."""
         for what, v in (("width", width), ("height", height)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -270,7 +271,8 @@ class Localizer:
         f = float(max(width, height))
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
         q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")
-        jax.block_until_ready(localize(self.map, q, self.cfg))
+        for a in range(retry_lib.attempts(self.map, self.cfg)):  # each retry's config too
+            jax.block_until_ready(localize(self.map, q, retry_lib.attempt_config(self.cfg, a)))
         if track:
             jax.block_until_ready(track_lib.track_step(
                 self.map, q, self.map.egm.R[0], self.map.egm.t[0], (width, height), self.cfg))
