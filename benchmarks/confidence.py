@@ -69,7 +69,7 @@ from vrs_jax.localize.confidence import (
 
 # the quantities the tests read (localize.confidence.evidence_quantities)
 TESTS = ("inlier_ratio", "coverage", "pass_shift", "pass_rotation", "guided_ratio",
-         "n_inliers", "centre_std")
+         "n_inliers", "centre_std", "attempt_shift")
 
 ROOM = dict(width=160, height=120, n_reference=24)
 WRONG_T, WRONG_R = 0.05, 5.0  # wrong pose: beyond 5% of the scene scale or 5 deg

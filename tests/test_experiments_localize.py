@@ -63,7 +63,8 @@ def test_localize_query_list_and_run_records(tiny_map, small_synthetic_scene, tm
     for p in s["per_query"]:
         assert set(p) == {"name", "success", "fallback", "inliers", "matches", "error",
                           "inlier_coverage", "inlier_ray_angle_deg", "inlier_depth_spread",
-                          "inlier_centre_std", "centre_std_first", "confidence", "verdict"}
+                          "inlier_centre_std", "centre_std_first", "attempt_shift", "confidence",
+                          "verdict"}
         assert p["success"] and p["error"] is None and p["inliers"] >= 10
         assert p["verdict"] in ("localized", "uncertain") and 0 < p["confidence"] <= 1
         assert 0 < p["inlier_coverage"] <= 1 and p["inlier_ray_angle_deg"] > 0

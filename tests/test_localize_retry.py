@@ -12,10 +12,11 @@ import pytest
 
 from vrs_jax import localize, maps
 from vrs_jax.data.readers import load_scene
+from vrs_jax.geometry import camera_center
 from vrs_jax.localize import stages as st
 from vrs_jax.localize.batch import localize_scene
 from vrs_jax.localize.confidence import ConfidenceConfig, map_scale, one_confidence
-from vrs_jax.localize.retry import attempt_config, attempts, localize_with_retries
+from vrs_jax.localize.retry import attempt_config, attempt_shift, attempts, localize_with_retries
 from vrs_jax.localize.track import start_result
 
 
@@ -52,11 +53,13 @@ def test_attempts_count_the_references_left():
     assert attempt_config(cfg, 2).retrieval_offset == 10 and attempt_config(cfg, 2).retries == 0
 
 
-def _result(n_inliers: int, rendered: int, success: bool = True):
-    """A result at one pose with ``n_inliers`` of 100 matches (coverage 0.6; both passes at
-    that pose): localized from 30 inliers with the default thresholds."""
+def _result(n_inliers: int, rendered: int, success: bool = True, centre=(0.0, 0.0, -1.0)):
+    """A result at one pose (identity rotation, camera centre ``centre``) with ``n_inliers``
+    of 100 matches (coverage 0.6; both passes at that pose): localized from 30 inliers with
+    the default thresholds."""
     q = SimpleNamespace(mask=np.ones(50, bool))
-    r = start_result(q, np.arange(2, dtype=np.int32), np.eye(3), np.array([0.0, 0.0, 1.0]))
+    t = -np.asarray(centre, np.float64)  # c = -R^T t with R = I
+    r = start_result(q, np.arange(2, dtype=np.int32), np.eye(3), t)
     return r.replace(success=np.bool_(success), fallback=np.bool_(not success),
                      n_inliers=np.int32(n_inliers), n_matches=np.int32(100),
                      n_inliers_first=np.int32(n_inliers), n_rendered=np.int32(rendered),
@@ -93,6 +96,38 @@ def test_retries_keep_the_most_confident_and_stop_once_localized(outcomes, retri
     assert int(r.n_rendered) == sum(outcomes[c // 5][1] for c in calls)  # every attempt's
 
 
+def test_attempt_shift_is_the_distance_to_the_farthest_other_pose():
+    kept = _result(80, 1, centre=(1.0, 2.0, 3.0))
+    others = [_result(20, 1, centre=(1.0, 2.0, 4.0)), _result(0, 1, False, centre=(9, 9, 9)),
+              _result(25, 1, centre=(4.0, 6.0, 3.0))]
+    assert attempt_shift(kept, others) == pytest.approx(5.0, abs=1e-5)  # 3-4-5; no failed one
+    assert np.isnan(attempt_shift(kept, others[1:2]))  # no other PnP pose: unknown
+    assert np.isnan(attempt_shift(kept, []))
+
+
+@pytest.mark.parametrize("first_centre, first_ok, want_verdict", [
+    ((0.0, 0.0, -1.0 + 0.04), True, "localized"),  # attempts agree within 4% of the scale
+    ((0.0, 0.0, -1.0 + 0.06), True, "uncertain"),  # 6% apart: not both right
+    ((5.0, 0.0, 0.0), False, "localized"),  # the first attempt had no pose: nothing to check
+])
+def test_a_kept_retry_whose_attempts_disagree_is_uncertain(first_centre, first_ok,
+                                                           want_verdict):
+    """A doubtful first attempt, then a confident retry: the retry is kept, and its verdict
+    is localized only if the two poses agree within max_attempt_shift (5% of the scale)."""
+    outcomes = [_result(20, 10, first_ok, first_centre), _result(80, 5)]
+    cfg = localize.get_config("test", top_k=5, retries=1)
+    r, kept = localize_with_retries(_stub_map(10), None, cfg,
+                                    lambda c: outcomes[c.retrieval_offset // 5], scale=1.0)
+    assert kept == 1 and int(r.n_inliers) == 80
+    want_shift = np.linalg.norm(np.subtract(first_centre, (0.0, 0.0, -1.0)))
+    if first_ok:
+        assert float(r.attempt_shift) == pytest.approx(want_shift, abs=1e-5)
+    else:
+        assert np.isnan(float(r.attempt_shift))
+    assert one_confidence(r, 1.0)[1] == want_verdict
+    assert ConfidenceConfig().max_attempt_shift == 0.05
+
+
 @pytest.fixture(scope="module")
 def loaded(tiny_map, small_synthetic_scene):
     return maps.load_map(tiny_map), load_scene("7scenes", small_synthetic_scene).queries()
@@ -118,6 +153,11 @@ def test_localize_scene_retries_doubtful_queries_with_the_next_references(loaded
         assert a == (1 if c1 > c0 else 0), (name, c0, c1)  # the more confident, first on ties
         np.testing.assert_allclose(results[i].t, direct[a][i].t, atol=1e-5)
         np.testing.assert_array_equal(results[i].retrieved, direct[a][i].retrieved)
+        other = direct[1 - a][i]  # the attempt not kept: its pose's distance, or none
+        want = (np.linalg.norm(camera_center(results[i].R, results[i].t)
+                               - camera_center(other.R, other.t))
+                if bool(other.success) and not bool(other.fallback) else np.nan)
+        np.testing.assert_allclose(float(results[i].attempt_shift), want, atol=1e-4)
         assert not set(np.asarray(direct[0][i].retrieved).tolist()) & set(
             np.asarray(direct[1][i].retrieved).tolist())  # the next references, not the same
     _, info0 = localize_scene(m, queries, one, progress=False, timed=False)

@@ -324,7 +324,9 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
     """A query's diagnostics for summary.json: success, fallback, inliers, matches, the
     inliers' geometry (coverage of the query image, median ray angle with the map views,
     relative depth spread, the camera centre's standard deviation from the final and from
-    the first pass's inliers, in map units; None without inliers), the pose ``confidence``
+    the first pass's inliers, in map units; None without inliers; the distance to the
+    farthest pose of the query's other attempts, None without a retry's pose), the pose
+    ``confidence``
     in [0, 1] and its
     ``verdict`` (localized / uncertain / failed; localize.confidence) and why it has no PnP
     pose (``error``: None when localized; localize.failure_reason with the PnP config's
@@ -333,7 +335,7 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
         return {"name": name, "success": False, "fallback": False, "inliers": 0, "matches": 0,
                 "inlier_coverage": None, "inlier_ray_angle_deg": None,
                 "inlier_depth_spread": None, "inlier_centre_std": None,
-                "centre_std_first": None, "confidence": 0.0,
+                "centre_std_first": None, "attempt_shift": None, "confidence": 0.0,
                 "verdict": "failed",
                 "error": error or "no result"}
     ok = bool(r.success)
@@ -341,7 +343,8 @@ def per_query(name: str, r, error: str | None, confidence: float = 0.0,
         ("inlier_coverage", r.inlier_coverage), ("inlier_ray_angle_deg", r.inlier_ray_angle_deg),
         ("inlier_depth_spread", r.inlier_depth_spread),
         ("inlier_centre_std", getattr(r, "inlier_centre_std", np.nan)),
-        ("centre_std_first", getattr(r, "centre_std_first", np.nan)))}
+        ("centre_std_first", getattr(r, "centre_std_first", np.nan)),
+        ("attempt_shift", getattr(r, "attempt_shift", np.nan)))}
     return {"name": name, "success": ok, "fallback": bool(r.fallback),
             "inliers": int(r.n_inliers), "matches": int(r.n_matches), **geo,
             "confidence": round(confidence, 4), "verdict": verdict,

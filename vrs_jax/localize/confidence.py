@@ -17,7 +17,9 @@ Pure numpy, batched over queries, after the jitted pipeline (nothing here change
   to ``focal_std``, ``LocalizeResult.centre_std_first``, above a fraction of the scene's
   scale: inliers all far away, at one depth, cannot tell a step along the optical axis
   from a zoom, and a guided pass at such a pose finds the far points again wherever the
-  camera is on that axis);
+  camera is on that axis), or, for a query tried again with other references
+  (:mod:`~vrs_jax.localize.retry`), attempts whose poses put the camera in different places
+  (``LocalizeResult.attempt_shift`` above a fraction of the scene's scale);
 - localized: all tests pass.
 
 Each test maps its quantity to a score in [0, 1] that is 0.5 exactly at its threshold,
@@ -48,7 +50,7 @@ LOCALIZED_AT = 0.5  # confidence at and above which the verdict is "localized"
 # The LocalizeResult fields the rule reads (numpy, [N] or [N, 3(, 3)]).
 FIELDS = ("success", "fallback", "n_inliers", "n_matches", "n_inliers_first",
           "n_inliers_guided", "R", "t", "R_first", "t_first", "inlier_coverage",
-          "centre_std_first")
+          "centre_std_first", "attempt_shift")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,11 +142,24 @@ class ConfidenceConfig:
     # a hundred scene units away still trade a 0.3% zoom for a step of 0.3 units (10% of the
     # walk's scale).
     focal_std: float = 0.003
+    # LocalizeResult.attempt_shift (camera-centre distance to another attempt's PnP pose,
+    # :mod:`~vrs_jax.localize.retry`) as a fraction of the scene scale above which the pose
+    # is uncertain: two poses farther apart than a wrong pose's error (5% of the scale) are
+    # not both right, and a retry keeps the more confident one, which is how it reported
+    # wrong poses as localized. On the phone walk's held-out leg (cpu-small, each query's two
+    # attempts localized apart; README "Two attempts that disagree"), render mode's two
+    # retried poses reported localized 5.8% and 11.1% off were 5.6% and 14.6% from their
+    # first attempts (both now uncertain); the right ones kept localized by a retry were
+    # within 0.5% of theirs (render) and 1.6-1.8% (real patches), but for one right pose
+    # each side whose first attempt was itself wrong (3.3% off, 5.1% from a first attempt
+    # 7.1% off; real patches: 0.3% off, 24% from a first attempt 24% off), which become
+    # uncertain.
+    max_attempt_shift: float = 0.05
 
     def __post_init__(self):
         for f in ("min_inlier_ratio", "min_coverage", "max_pass_shift",
                   "max_pass_rotation_deg", "min_guided_ratio", "min_inliers",
-                  "max_centre_std", "focal_std"):
+                  "max_centre_std", "focal_std", "max_attempt_shift"):
             if not getattr(self, f) > 0:
                 raise VrsError(f"ConfidenceConfig.{f} must be > 0, got {getattr(self, f)}")
         for f in ("min_inlier_ratio", "min_coverage", "min_guided_ratio"):
@@ -164,7 +179,8 @@ def map_scale(m) -> float:
 def result_fields(results: Sequence) -> dict[str, np.ndarray]:
     """The :data:`FIELDS` of a list of LocalizeResult (numpy or device values) or None
     (no result: counted as failed), stacked along a leading query axis; a result from before
-    ``n_inliers_guided`` existed reads -1 there (no guided pass)."""
+    ``n_inliers_guided`` existed reads -1 there (no guided pass), one from before
+    ``centre_std_first`` or ``attempt_shift`` NaN (the test does not apply)."""
     n = len(results)
     out = {"success": np.zeros(n, bool), "fallback": np.ones(n, bool),
            "n_inliers": np.zeros(n, np.int64), "n_matches": np.zeros(n, np.int64),
@@ -172,7 +188,8 @@ def result_fields(results: Sequence) -> dict[str, np.ndarray]:
            "n_inliers_guided": np.full(n, -1, np.int64),
            "R": np.tile(np.eye(3), (n, 1, 1)), "t": np.zeros((n, 3)),
            "R_first": np.tile(np.eye(3), (n, 1, 1)), "t_first": np.zeros((n, 3)),
-           "inlier_coverage": np.full(n, np.nan), "centre_std_first": np.full(n, np.nan)}
+           "inlier_coverage": np.full(n, np.nan), "centre_std_first": np.full(n, np.nan),
+           "attempt_shift": np.full(n, np.nan)}
     for i, r in enumerate(results):
         if r is None:
             continue
@@ -194,7 +211,8 @@ def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[
     """Each test's quantity [N]: inlier_ratio (inliers / matches), coverage, pass_shift (the
     passes' camera-centre distance / ``scale``), pass_rotation (degrees), guided_ratio
     (guided-pass inliers / first-pass inliers; NaN without a guided pass), n_inliers,
-    centre_std (``centre_std_first`` / ``scale``; NaN where unknown)."""
+    centre_std (``centre_std_first`` / ``scale``; NaN where unknown), attempt_shift
+    (``attempt_shift`` / ``scale``; NaN without another attempt's pose)."""
     if not (np.isfinite(scale) and scale > 0):
         raise VrsError(f"pose_confidence needs a positive scene scale, got {scale}")
     n_inl = np.asarray(fields["n_inliers"], np.float64)
@@ -202,14 +220,16 @@ def evidence_quantities(fields: Mapping[str, np.ndarray], scale: float) -> dict[
     n_first = np.asarray(fields["n_inliers_first"], np.float64)
     n_guided = np.asarray(fields["n_inliers_guided"], np.float64)
     shift, rot = pass_disagreement(fields)
+    unknown = np.full(n_inl.shape, np.nan)
     return {"inlier_ratio": np.where(n_match > 0, n_inl / np.maximum(n_match, 1.0), 0.0),
             "coverage": np.asarray(fields["inlier_coverage"], np.float64),
             "pass_shift": shift / scale, "pass_rotation": rot,
             "guided_ratio": np.where(n_guided >= 0, n_guided / np.maximum(n_first, 1.0),
                                      np.nan),
             "n_inliers": n_inl,
-            "centre_std": np.asarray(fields.get("centre_std_first", np.full(n_inl.shape, np.nan)),
-                                     np.float64) / scale}
+            "centre_std": np.asarray(fields.get("centre_std_first", unknown),
+                                     np.float64) / scale,
+            "attempt_shift": np.asarray(fields.get("attempt_shift", unknown), np.float64) / scale}
 
 
 def has_pose(fields: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -221,7 +241,7 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
                      ) -> dict[str, np.ndarray]:
     """Each test's score [N] in [0, 1] from its quantity (:func:`evidence_quantities`): 0.5 at
     its threshold; a NaN coverage (no inliers) scores 0, a NaN guided ratio (no guided
-    pass) or centre std (unknown) 1."""
+    pass), centre std (unknown) or attempt shift (no other attempt's pose) 1."""
     def high(x, thr):  # larger is better: 0 at 0, 0.5 at thr, 1 from 1 on
         x = np.clip(x, 0.0, 1.0)
         return np.where(x < thr, 0.5 * x / thr, 0.5 + 0.5 * (x - thr) / (1.0 - thr))
@@ -234,6 +254,8 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
         return np.clip(0.5 * np.maximum(x, 0.0) / thr, 0.0, 1.0)
 
     g = np.asarray(q["guided_ratio"], np.float64)
+    nan = g * np.nan
+    unknown_is_fine = lambda k: np.nan_to_num(np.asarray(q.get(k, nan), np.float64), nan=0.0)  # noqa: E731
     return {"inlier_ratio": high(np.asarray(q["inlier_ratio"], np.float64),
                                  cfg.min_inlier_ratio),
             "coverage": high(np.nan_to_num(np.asarray(q["coverage"], np.float64), nan=0.0),
@@ -244,16 +266,15 @@ def score_quantities(q: Mapping[str, np.ndarray], cfg: ConfidenceConfig
             "guided_ratio": np.where(np.isnan(g), 1.0,
                                      high(np.nan_to_num(g, nan=1.0), cfg.min_guided_ratio)),
             "n_inliers": count(np.asarray(q["n_inliers"], np.float64), cfg.min_inliers),
-            "centre_std": low(np.nan_to_num(np.asarray(q.get("centre_std", g * np.nan),
-                                                       np.float64), nan=0.0),
-                              cfg.max_centre_std)}
+            "centre_std": low(unknown_is_fine("centre_std"), cfg.max_centre_std),
+            "attempt_shift": low(unknown_is_fine("attempt_shift"), cfg.max_attempt_shift)}
 
 
 def confidence_scores(fields: Mapping[str, np.ndarray], scale: float,
                       cfg: ConfidenceConfig) -> dict[str, np.ndarray]:
     """Each test's score [N] in [0, 1] (0.5 at its threshold; 1 where it does not apply):
     inlier_ratio, coverage, pass_shift, pass_rotation, guided_ratio, n_inliers,
-    centre_std."""
+    centre_std, attempt_shift."""
     return score_quantities(evidence_quantities(fields, scale), cfg)
 
 

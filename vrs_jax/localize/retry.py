@@ -11,7 +11,10 @@ whose top references show another place, or only far points of the right one, ge
 look from other views, as hloc tries its retrieved images' covisibility clusters in turn.
 The result with the highest confidence is kept (the earliest on ties); its ``n_rendered``
 counts the patches every attempt rendered (what the query cost), ``retrieved`` the
-references of the attempt kept.
+references of the attempt kept, and ``attempt_shift`` how far its camera centre is from the
+farthest PnP pose of the other attempts: the confidence flags a pose whose attempts put the
+camera in different places (``ConfidenceConfig.max_attempt_shift``), since keeping the more
+confident of two disagreeing poses is a guess.
 
 Host code around the jitted stages: each attempt's config is a static argument, so a map
 compiles once per attempt index used.
@@ -25,6 +28,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
+from vrs_jax.geometry import camera_center
 from vrs_jax.localize.confidence import map_scale, one_confidence
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.stages import LocalizeResult
@@ -47,6 +51,16 @@ def attempts(m: Map, cfg: LocalizeConfig) -> int:
     return 1 + min(cfg.retries, max(0, -(-left // cfg.top_k) - 1))
 
 
+def attempt_shift(kept: LocalizeResult, others: list[LocalizeResult]) -> float:
+    """Camera-centre distance (map units) from ``kept``'s pose to the farthest PnP pose (a
+    success, not the fallback) among ``others``; NaN when none has one (numpy results)."""
+    c = camera_center(np.asarray(kept.R, np.float64), np.asarray(kept.t, np.float64))
+    d = [float(np.linalg.norm(camera_center(np.asarray(r.R, np.float64),
+                                            np.asarray(r.t, np.float64)) - c))
+         for r in others if bool(r.success) and not bool(r.fallback)]
+    return max(d) if d else float("nan")
+
+
 def localize_with_retries(m: Map, q, cfg: LocalizeConfig,
                           once: Callable[[LocalizeConfig], LocalizeResult],
                           scale: float | None = None) -> tuple[LocalizeResult, int]:
@@ -66,13 +80,16 @@ def localize_with_retries(m: Map, q, cfg: LocalizeConfig,
         return best, 0
     scale = map_scale(m) if scale is None else scale
     conf, verdict = one_confidence(best, scale, cfg.confidence)
-    kept, rendered = 0, int(best.n_rendered)
+    kept, made = 0, [best]
     for a in range(1, n):
         if verdict == "localized":
             break
         r = jax.device_get(once(attempt_config(cfg, a)))
-        rendered += int(r.n_rendered)
+        made.append(r)
         c, v = one_confidence(r, scale, cfg.confidence)
         if c > conf:
             best, conf, verdict, kept = r, c, v, a
-    return best.replace(n_rendered=np.asarray(rendered, np.int32)), kept
+    rendered = sum(int(r.n_rendered) for r in made)
+    shift = attempt_shift(best, made[:kept] + made[kept + 1:]) if len(made) > 1 else np.nan
+    return best.replace(n_rendered=np.asarray(rendered, np.int32),
+                        attempt_shift=np.asarray(shift, np.float32)), kept

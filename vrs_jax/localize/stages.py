@@ -96,6 +96,11 @@ class LocalizeResult:
       so at a wrong first pose the few near points it adds can be chance matches that agree
       with that pose (measured on the phone walk), while the first pass's inliers say how
       well the pose was fixed before it.
+    attempt_shift: [] float32 camera-centre distance (map units) from this pose to the
+      farthest PnP pose of the query's other attempts (:mod:`~vrs_jax.localize.retry`: the
+      next references by appearance); NaN when it had none (no retry, or no pose there).
+      Two attempts on disjoint references that put the camera in different places cannot
+      both be right, and nothing in either result says which one is.
     """
 
     R: Array
@@ -117,6 +122,7 @@ class LocalizeResult:
     n_keypoints: Array
     inlier_centre_std: Array
     centre_std_first: Array
+    attempt_shift: Array
 
 
 def failure_reason(r: LocalizeResult, min_inliers: int) -> str | None:
@@ -398,7 +404,8 @@ def refinement(m: Map, q: Query, cfg: LocalizeConfig, s: State) -> State:
                          inlier_coverage=cov, inlier_ray_angle_deg=ang,
                          inlier_depth_spread=spread,
                          n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
-                         inlier_centre_std=std, centre_std_first=std)
+                         inlier_centre_std=std, centre_std_first=std,
+                         attempt_shift=jnp.float32(jnp.nan))
     return {"result": res, "inliers": pose.inliers}
 
 

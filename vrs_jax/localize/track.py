@@ -182,7 +182,7 @@ def start_result(q: Query, idx: Array, R: Array, t: Array) -> LocalizeResult:
                           n_inliers_first=i32, n_inliers_guided=jnp.int32(-1), n_rendered=i32,
                           n_rendered_first=i32, inlier_coverage=nan, inlier_ray_angle_deg=nan,
                           inlier_depth_spread=nan, n_keypoints=jnp.sum(q.mask).astype(jnp.int32),
-                          inlier_centre_std=nan, centre_std_first=nan)
+                          inlier_centre_std=nan, centre_std_first=nan, attempt_shift=nan)
 
 
 def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
@@ -377,6 +377,7 @@ class TrackResult:
     n_keypoints: int
     inlier_centre_std: float = float("nan")
     centre_std_first: float = float("nan")
+    attempt_shift: float = float("nan")
     tracked: bool = False
     by_check: bool = False
     unconfirmed: bool = False
