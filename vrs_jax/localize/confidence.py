@@ -146,14 +146,14 @@ class ConfidenceConfig:
     # :mod:`~vrs_jax.localize.retry`) as a fraction of the scene scale above which the pose
     # is uncertain: two poses farther apart than a wrong pose's error (5% of the scale) are
     # not both right, and a retry keeps the more confident one, which is how it reported
-    # wrong poses as localized. On the phone walk's held-out leg (cpu-small, each query's two
-    # attempts localized apart; README "Two attempts that disagree"), render mode's two
-    # retried poses reported localized 5.8% and 11.1% off were 5.6% and 14.6% from their
-    # first attempts (both now uncertain); the right ones kept localized by a retry were
-    # within 0.5% of theirs (render) and 1.6-1.8% (real patches), but for one right pose
-    # each side whose first attempt was itself wrong (3.3% off, 5.1% from a first attempt
-    # 7.1% off; real patches: 0.3% off, 24% from a first attempt 24% off), which become
-    # uncertain.
+    # wrong poses as localized. On the phone walk's held-out leg (cpu-small on 8665dfa,
+    # docs/figures/localize_seven_8665dfa.json; README "Two attempts that disagree"), the
+    # two retried render poses reported localized 5.1% and 9.8% off lay 5.6% and 14.6% from
+    # their first attempts' (both now uncertain); the right poses a retry keeps localized lie
+    # 0.5% (render) and 1.6-4.8% (real patches) from theirs, or their first attempt had no
+    # pose. It also flags one right pose in each mode whose first attempt was itself wrong
+    # (render 2.9% off, 5.1% from its first attempt; real patches 0.3% off, 24%). The six
+    # benchmark scenes' retried poses (walk, lego) are unchanged by it.
     max_attempt_shift: float = 0.05
 
     def __post_init__(self):
