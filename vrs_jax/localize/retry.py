@@ -28,7 +28,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from vrs_jax.geometry import camera_center
+from vrs_jax.geometry import pose_errors
 from vrs_jax.localize.confidence import map_scale, one_confidence
 from vrs_jax.localize.config import LocalizeConfig
 from vrs_jax.localize.stages import LocalizeResult
@@ -54,9 +54,8 @@ def attempts(m: Map, cfg: LocalizeConfig) -> int:
 def attempt_shift(kept: LocalizeResult, others: list[LocalizeResult]) -> float:
     """Camera-centre distance (map units) from ``kept``'s pose to the farthest PnP pose (a
     success, not the fallback) among ``others``; NaN when none has one (numpy results)."""
-    c = camera_center(np.asarray(kept.R, np.float64), np.asarray(kept.t, np.float64))
-    d = [float(np.linalg.norm(camera_center(np.asarray(r.R, np.float64),
-                                            np.asarray(r.t, np.float64)) - c))
+    f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    d = [float(pose_errors(f64(kept.R), f64(kept.t), f64(r.R), f64(r.t))[0])
          for r in others if bool(r.success) and not bool(r.fallback)]
     return max(d) if d else float("nan")
 
