@@ -304,3 +304,96 @@ def test_an_unconfirmed_tracked_pose_is_kept_as_uncertain_only_where_full_fails(
         dt, dr = _errors(r, stream, i)
         assert r.tracked and r.verdict == "uncertain" and r.confidence < LOCALIZED_AT
         assert dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+
+
+def test_an_uncertain_check_pose_is_kept_without_the_overlap_test(loc, stream):
+    """When the tracked pose is rejected, the check pass's pose is kept (tracked, by check)
+    with an "uncertain" verdict too, reported uncertain (track.keep_uncertain_check), and
+    whatever the references' overlap with the frame's retrieval (track.check_needs_overlap
+    False: that test guards the tracking pass's pose); either switched back, the frame is
+    left to a full localization."""
+    import dataclasses
+
+    import jax
+
+    from vrs_jax.localize.confidence import LOCALIZED_AT, map_scale
+
+    m, cfg = loc.map, loc.cfg
+    i = 4
+    q = loc.prepare(stream.image_paths[i], stream.K[i])
+    size = np.asarray(stream.sizes[i], np.float32)
+    out = jax.device_get(track.track_step(m, q, stream.R[i], stream.t[i], size, cfg))
+    scale = map_scale(m)
+    wrong = out.result.replace(t=out.result.t + np.float32([0.03 * scale, 0, 0]))
+    pred = (np.asarray(wrong.R), np.asarray(wrong.t))
+    # a camera-centre bound no pose meets: every verdict is "uncertain"
+    strict = dataclasses.replace(cfg, confidence=dataclasses.replace(cfg.confidence,
+                                                                     max_centre_std=1e-9))
+    assert track.confidence_of(out.check, scale, strict)[1] == "uncertain"
+
+    def kept_by(c, step):
+        return track.accepted(m, q, c, step, pred, scale)
+
+    r, conf, verdict, kept = kept_by(strict, track.TrackStep(wrong, out.check))
+    assert kept["tracked"] and kept["by_check"] and "uncertain" in kept["rejected"]
+    assert verdict == "uncertain" and conf < LOCALIZED_AT
+    np.testing.assert_allclose(r.t, out.check.t)
+    off = dataclasses.replace(strict, track=dataclasses.replace(strict.track,
+                                                                keep_uncertain_check=False))
+    assert not kept_by(off, track.TrackStep(wrong, out.check))[3]["tracked"]
+    # references the frame's appearance does not retrieve: the tracked pose fails that test,
+    # the check pass's pose is kept all the same unless check_needs_overlap
+    own = np.asarray(stages.retrieval(m, q, cfg, {})["idx"])
+    others = np.setdiff1d(np.arange(m.egm.num_images), own)[:len(own)].astype(np.int32)
+    step = track.TrackStep(out.result.replace(retrieved=others), out.check)
+    r, _, _, kept = kept_by(cfg, step)
+    assert kept["tracked"] and kept["by_check"] and "appearance" in kept["rejected"]
+    need = dataclasses.replace(cfg, track=dataclasses.replace(cfg.track,
+                                                              check_needs_overlap=True))
+    assert not kept_by(need, step)[3]["tracked"]
+
+
+def test_tracking_pass_renders_at_most_its_budget(tiny_map, stream):
+    """track.keypoints caps the map points the tracking pass renders (render mode); the
+    check pass's pose comes from those same patches."""
+    import dataclasses
+
+    import jax
+
+    m = maps.load_map(tiny_map).without_descriptors()
+    base = localize.get_config("test", guided_passes=1)
+    i = 2
+    loc = Localizer(m, base)
+    q = loc.prepare(stream.image_paths[i], stream.K[i])
+    size = np.asarray(stream.sizes[i], np.float32)
+    n = {}
+    for budget in (0, 24):
+        cfg = dataclasses.replace(base, track=dataclasses.replace(base.track, keypoints=budget))
+        out = jax.device_get(track.track_step(m, q, stream.R[i], stream.t[i], size, cfg))
+        n[budget] = int(out.result.n_rendered_first)
+        assert int(out.check.n_rendered) == n[budget]
+    assert 0 < n[24] <= 24 < n[0], n
+    with pytest.raises(VrsError, match="keypoints"):
+        localize.TrackConfig(keypoints=-1)
+
+
+def test_a_check_pose_far_from_the_prediction_reanchors_the_motion():
+    """A pose kept from the check pass (matched without the prediction) that lands beyond the
+    jump limits re-anchors the motion prior as a full localization's does: the old
+    velocity, not the jump, carries on."""
+    import dataclasses
+
+    cfg = localize.get_config("test")
+    eye = np.eye(3)
+    history = [(0, eye, np.zeros(3)), (1, eye, np.array([0.1, 0.0, 0.0]))]
+    far = np.array([5.0, 0.0, 0.0])
+    r = dataclasses.replace(track.flagged("f", "x", 2, 0.0), error=None, success=True,
+                            verdict="uncertain", t=far, tracked=True, by_check=True,
+                            R_pred=eye, t_pred=np.array([0.2, 0.0, 0.0]))
+    out = track.updated_history(history, 2, r, 1.0, cfg)
+    assert len(out) == 2 and out[1][0] == 2
+    np.testing.assert_allclose(out[1][2], far)
+    np.testing.assert_allclose(out[0][2], far - np.array([0.1, 0.0, 0.0]), atol=1e-9)
+    # kept by the tracking pass itself (tracked, not by check): appended, no re-anchoring
+    own = dataclasses.replace(r, by_check=False)
+    assert [e[0] for e in track.updated_history(history, 2, own, 1.0, cfg)] == [1, 2]

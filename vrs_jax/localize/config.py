@@ -94,6 +94,23 @@ class TrackConfig:
     # before localizing the frame in full: it is a first pass plus re-matching on the
     # references nearest the prediction, for the patches already rendered.
     keep_check: bool = True
+    # Also keep a check pass's pose whose verdict is "uncertain" (reported uncertain, not
+    # localized) instead of localizing the frame in full, whose pose on the same frames is
+    # mostly uncertain too; and do not ask the check pass's pose for min_retrieval_overlap,
+    # a test that guards the tracking pass's pose (its inliers gather near the prediction)
+    # while the check pass matches without it. Both were off before; on the phone walk's
+    # held-out leg in render mode (50 frames in order, benchmarks.track, README "Tracking
+    # keeps the check pass's pose") the tracking pass's own pose was 10-80% of the scale off
+    # on 24 of 42 attempts (the frames are 2-17% of the scale and up to 37 deg apart, so the
+    # constant-velocity prediction misses by more than the search radius) while the check
+    # pass's was within 1-5% on most of them, yet only 5 frames were kept.
+    keep_uncertain_check: bool = True
+    check_needs_overlap: bool = False
+    # Map points the tracking pass renders (render mode; the longest tracks near a query
+    # keypoint, as the guided pass's guided_keypoints): the check pass matches the frame to
+    # these only, so more than a guided pass (started from a refined pose) needs. 0: the
+    # config's guided_keypoints (cpu-small sets 192: its comment).
+    keypoints: int = 0
     # Frames since the last good pose beyond which a frame is localized in full instead of
     # predicted: constant velocity extrapolates its error with the gap; after a few lost
     # frames a full pass is cheaper than a failed tracking step plus a full pass.
@@ -106,10 +123,10 @@ class TrackConfig:
     prior_verdicts: tuple[str, ...] = ("localized", "uncertain")
 
     def __post_init__(self):
-        if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1
+        if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1 or self.keypoints < 0
                 or self.refine_passes < 0 or self.min_retrieval_overlap < 0):
-            raise VrsError("TrackConfig.top_k must be >= 0, min_inliers >= 1, max_gap >= 1, "
-                           "refine_passes >= 0, min_retrieval_overlap >= 0")
+            raise VrsError("TrackConfig.top_k and keypoints must be >= 0, min_inliers >= 1, "
+                           "max_gap >= 1, refine_passes >= 0, min_retrieval_overlap >= 0")
         if self.max_disagreement < 0 or self.max_disagreement_deg <= 0:
             raise VrsError("TrackConfig.max_disagreement must be >= 0 (0: not checked) and "
                            "max_disagreement_deg > 0")
@@ -357,7 +374,8 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 guided_radius=4.0, guided_threshold_px=2.0,
                                 guided_reuse_inliers=True, guided_keypoints=96,
                                 render_grid=8, early_exit_inliers=24, render_chunk=2048,
-                                retries=1, track=TrackConfig(min_retrieval_overlap=2)),
+                                retries=1, track=TrackConfig(min_retrieval_overlap=2,
+                                                             keypoints=192)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,

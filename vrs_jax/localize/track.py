@@ -189,7 +189,8 @@ def track_pass_config(cfg: LocalizeConfig) -> LocalizeConfig:
     """The guided-pass settings of the tracking pass: ``cfg`` with the tracking radius and
     inlier threshold."""
     return dataclasses.replace(cfg, guided_radius=cfg.track.radius_px,
-                               guided_threshold_px=cfg.track.threshold_px)
+                               guided_threshold_px=cfg.track.threshold_px,
+                               guided_keypoints=cfg.track.keypoints or cfg.guided_keypoints)
 
 
 class TrackStep(NamedTuple):
@@ -247,7 +248,7 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
     if cfg.track.max_disagreement <= 0:  # not checked: no check pass
         return TrackStep(res, res)
     chk = check_pass(m, q, cfg, idx, desc, mask)
-    return TrackStep(res, chk.replace(n_rendered=res.n_rendered_first,
+    return TrackStep(res, chk.replace(n_rendered=res.n_rendered_first + chk.n_rendered,
                                       n_rendered_first=res.n_rendered_first))
 
 
@@ -291,15 +292,16 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
 
 
 def pose_rejection(r: LocalizeResult, verdict: str, cfg: LocalizeConfig,
-                   agrees: bool = True, weakest: str | None = None) -> str | None:
+                   agrees: bool = True, weakest: str | None = None,
+                   verdicts: tuple[str, ...] = ("localized",)) -> str | None:
     """Why a pose of a tracking step is not kept on its own merits (None: kept): no pose, a
-    verdict other than "localized" (naming the confidence's ``weakest`` test when given),
+    verdict not in ``verdicts`` (naming the confidence's ``weakest`` test when given),
     fewer than ``track.min_inliers`` inliers, or references that the frame's appearance
     does not retrieve (``agrees`` False: :func:`appearance_agrees`)."""
     tc = cfg.track
     if not bool(r.success):
         return "the tracking pass found no pose"
-    if verdict != "localized":
+    if verdict not in verdicts:
         return f"confidence verdict {verdict}" + (
             f" (weakest test: {weakest})" if weakest else "")
     if int(r.n_inliers) < tc.min_inliers:
@@ -563,7 +565,9 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
         return r, conf, verdict, {"tracked": True}
     if tc.keep_check and tc.max_disagreement > 0:
         c_conf, c_verdict = confidence_of(check, scale, cfg)
-        if pose_rejection(check, c_verdict, cfg, agrees) is None:
+        keep = ("localized", "uncertain") if tc.keep_uncertain_check else ("localized",)
+        c_agrees = agrees or not tc.check_needs_overlap
+        if pose_rejection(check, c_verdict, cfg, c_agrees, verdicts=keep) is None:
             return check, c_conf, c_verdict, {"tracked": True, "by_check": True,
                                               "rejected": reason}
     # only unconfirmed: the check pass found no pose to agree or disagree with
@@ -598,7 +602,7 @@ def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
         return history
     R, t = np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
     entry = (i, R, t)
-    if not res.tracked and res.R_pred is not None:
+    if (not res.tracked or res.by_check) and res.R_pred is not None:
         dt, dr = jump(R, t, res.R_pred, res.t_pred)
         if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
             if len(history) < 2:
