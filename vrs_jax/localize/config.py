@@ -109,7 +109,7 @@ class TrackConfig:
     # Map points the tracking pass renders (render mode; the longest tracks near a query
     # keypoint, as the guided pass's guided_keypoints): the check pass matches the frame to
     # these only, so more than a guided pass (started from a refined pose) needs. 0: the
-    # config's guided_keypoints (cpu-small sets 192: its comment).
+    # config's guided_keypoints (cpu-small sets 160: its comment).
     keypoints: int = 0
     # Frames since the last good pose beyond which a frame is localized in full instead of
     # predicted: constant velocity extrapolates its error with the gap; after a few lost
@@ -358,7 +358,13 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # tracked pose kept on our real streams was wrong (fox in capture order: 1 of 1, 68% of the
     # scale off; the walk's held-out leg: 2 of 2 in each mode); with 2 none is kept there
     # (benchmarks.track on the depth-loss maps), so those frames are localized in full; the
-    # check pass (TrackConfig.max_disagreement) keeps right poses there since (README).
+    # check pass (TrackConfig.max_disagreement) keeps right poses there since (README). The
+    # tracking pass renders 160 map points, not the guided pass's 96: the check pass matches
+    # the frame to those only (benchmarks.track --mode render --modes track on the walk's
+    # held-out leg, 50 frames, README "Tracking keeps the check pass's pose"): 96 points
+    # kept 24 frames by tracking, 12.0 / 24.0% within 1% / 2%; 128: 26, 16.0 / 20.0%; 160:
+    # 26, 18.0 / 28.0%; 192: 26, 18.0 / 24.0% at 0.03 s more per tracked frame; 256: 26,
+    # 18.0 / 24.0%.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
@@ -375,7 +381,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 guided_reuse_inliers=True, guided_keypoints=96,
                                 render_grid=8, early_exit_inliers=24, render_chunk=2048,
                                 retries=1, track=TrackConfig(min_retrieval_overlap=2,
-                                                             keypoints=192)),
+                                                             keypoints=160)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,
