@@ -363,7 +363,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # the frame to those only (benchmarks.track --mode render --modes track on the walk's
     # held-out leg, 50 frames, README "Tracking keeps the check pass's pose"): 96 points
     # kept 24 frames by tracking, 12.0 / 24.0% within 1% / 2%; 128: 26, 16.0 / 20.0%; 160:
-    # 26, 18.0 / 28.0%; 192: 26, 18.0 / 24.0% at 0.03 s more per tracked frame; 256: 26,
+    # 26, 18.0 / 28.0%; 192: 26, 18.0 / 24.0%; 256: 26,
     # 18.0 / 24.0%.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
