@@ -19,8 +19,10 @@ a frame needs only the guided pass, started from a predicted pose instead of a f
                 nothing to the prediction (:func:`check_pass`)
     accept      the verdict of the pose confidence is "localized", enough inliers, the
                 pose did not jump far from the prediction, and the check pass's pose agrees
-                with it (:func:`rejection`); else the frame is localized in full (retrieval
-                + first pass + guided)
+                with it (:func:`rejection`); else the check pass's pose if it has enough
+                inliers and its verdict is "localized" or (``track.keep_uncertain_check``)
+                "uncertain" (:func:`accepted`); else the frame is localized in full
+                (retrieval + first pass + guided)
 
 The first frame, a frame after more than ``track.max_gap`` frames without a good pose, and a
 frame whose tracking is rejected are localized in full. An unreadable frame, or one with fewer
@@ -551,7 +553,9 @@ def accepted(m: Map, q: Query, cfg: LocalizeConfig, out: TrackStep,
     """The pose a tracking step keeps (host code): (result, confidence, verdict, fields)
     with fields ``tracked``, ``by_check``, ``rejected`` and ``unconfirmed``
     (:class:`TrackResult`). The tracked pose if :func:`rejection` finds nothing against it;
-    else the check pass's if ``track.keep_check`` and it passes :func:`pose_rejection`;
+    else the check pass's if ``track.keep_check`` and it passes :func:`pose_rejection`
+    (with an "uncertain" verdict too if ``track.keep_uncertain_check``; the retrieval
+    overlap only if ``track.check_needs_overlap``);
     else ``tracked`` False (the frame is to be localized in full), with ``unconfirmed``
     True when only the check failed, by finding no pose (then the tracked pose, reported
     uncertain, is kept if the full localization is not "localized" either)."""
@@ -592,8 +596,9 @@ def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
                     res: TrackResult, scale: float, cfg: LocalizeConfig
                     ) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """The last two good poses after frame ``i``: its pose is added when it is a PnP pose
-    whose verdict is in ``track.prior_verdicts``. A full localization that lands farther
-    from the prediction than the jump limits re-anchors the history (the stream jumped:
+    whose verdict is in ``track.prior_verdicts``. A full localization, or a check pass's pose
+    kept by tracking (both made without the prediction), that lands farther from the
+    prediction than the jump limits re-anchors the history (the stream jumped:
     dropped frames, or the camera was moved): the new pose, preceded by a virtual pose one
     frame before it that keeps the motion per frame of the old history (the camera most
     likely kept moving as it did; zero motion with one good pose)."""
