@@ -72,6 +72,11 @@ def _assert_same(a: M.EGM, b: M.EGM):
     np.testing.assert_allclose(np.linalg.norm(gb, axis=1), 1.0, atol=1e-5)
     np.testing.assert_allclose(ga @ ga.T, gb @ gb.T, atol=1e-2)  # int8 on disk
     np.testing.assert_array_equal(a.vocab.centers, b.vocab.centers)
+    for f in ("local_mean", "local_proj"):
+        va, vb = getattr(a.vocab, f), getattr(b.vocab, f)
+        assert (va is None) == (vb is None), f
+        if va is not None:
+            np.testing.assert_array_equal(va, vb, err_msg=f)
     assert (a.local_desc is None) == (b.local_desc is None)
     if a.local_desc is not None:
         np.testing.assert_allclose(a.local_desc, b.local_desc, atol=2e-3)  # float16 on disk
@@ -86,6 +91,22 @@ def test_arrays_roundtrip(baseline):
     back = M.from_arrays(a, egm.names, egm.k_max, Path("x"), desc)
     _assert_same(egm, back)
     assert back.is_baseline == baseline
+
+
+def test_local_whitening_of_the_vocabulary_round_trips_and_is_checked():
+    """A vocabulary that whitens the local descriptors (RetrievalConfig.local_dim) is stored
+    with the map; a projection that does not fit the words is refused in one line."""
+    rng = np.random.default_rng(7)
+    egm = _toy()
+    vocab = egm.vocab.replace(local_mean=jnp.asarray(rng.normal(size=16), jnp.float32),
+                              local_proj=jnp.asarray(rng.normal(size=(16, 8)), jnp.float32))
+    egm = egm.replace(vocab=vocab)
+    a = M.to_arrays(egm)
+    _assert_same(egm, M.from_arrays(a, egm.names, egm.k_max, Path("x")))
+    a["local_proj"] = a["local_proj"][:, :5]
+    with pytest.raises(VrsError, match="local projection") as e:
+        M.from_arrays(a, egm.names, egm.k_max, Path("m/egm.npz"))
+    assert "m/egm.npz" in str(e.value) and "\n" not in str(e.value)
 
 
 def test_egm_is_a_pytree_for_jit():

@@ -97,3 +97,36 @@ def test_vocabulary_errors():
     with pytest.raises(VrsError, match="at least 2 reference images"):
         RT.learn_vocabulary([np.random.default_rng(0).normal(size=(10, 8))],
                             RT.RetrievalConfig(n_words=2, pca_dim=4))
+
+
+def test_local_whitening_before_vlad_matches_numpy():
+    """local_dim: the local descriptors are PCA-whitened (identity covariance over the
+    training descriptors) before the words are learned and VLAD is taken; a query's global
+    descriptor is the numpy VLAD of its whitened descriptors on those words."""
+    rng = np.random.default_rng(5)
+    mix = rng.normal(size=(16, 16))
+    descs = [_unit(rng.normal(size=(n, 16)) @ mix).astype(np.float32) for n in (40, 55, 30)]
+    vocab = RT.learn_vocabulary(descs, RT.RetrievalConfig(n_words=4, kmeans_iters=5,
+                                                          local_dim=6, whiten_eps=0.0))
+    assert vocab.input_dim == 16 and np.asarray(vocab.centers).shape == (4, 6)
+    assert vocab.dim == 24
+    allx = np.concatenate(descs).astype(np.float64)
+    mean, proj = np.asarray(vocab.local_mean), np.asarray(vocab.local_proj)
+    np.testing.assert_allclose(mean, allx.mean(0), atol=1e-6)
+    np.testing.assert_allclose(np.cov(((allx - mean) @ proj).T), np.eye(6), atol=1e-3)
+    q = _unit(rng.normal(size=(25, 16)) @ mix).astype(np.float32)
+    ref = _vlad_numpy((q - mean) @ proj, np.asarray(vocab.centers, np.float64))
+    np.testing.assert_allclose(RT.global_descriptor(q, None, vocab), ref, atol=1e-4)
+    with pytest.raises(VrsError, match="exceeds"):
+        RT.learn_vocabulary(descs, RT.RetrievalConfig(n_words=4, local_dim=17))
+    with pytest.raises(VrsError, match="local_dim"):
+        RT.RetrievalConfig(local_dim=0)
+
+
+def test_a_config_written_before_local_dim_means_raw_descriptors():
+    """Maps written before RetrievalConfig.local_dim existed read as without it."""
+    from vrs_jax import configio
+
+    d = configio.to_dict(RT.RetrievalConfig(n_words=8))
+    del d["local_dim"]
+    assert configio.from_dict(RT.RetrievalConfig, d) == RT.RetrievalConfig(n_words=8)

@@ -335,6 +335,9 @@ def to_arrays(egm: EGM) -> dict[str, np.ndarray]:
     if egm.vocab.pca_proj is not None:
         out["pca_mean"] = f32(egm.vocab.pca_mean)
         out["pca_proj"] = f32(egm.vocab.pca_proj)
+    if egm.vocab.local_proj is not None:
+        out["local_mean"] = f32(egm.vocab.local_mean)
+        out["local_proj"] = f32(egm.vocab.local_proj)
     return out
 
 
@@ -354,7 +357,7 @@ _KINDS = {
     "kp_counts": "u", "kp_xy_res": "i1", "kp_xy_exact_idx": "u", "kp_xy_exact": "f",
     "kp_scale": "u1", "kp_log2_scale_range": "f", "kp_angle": "u1", "point_idx": "u1",
     "global_desc": "i1", "global_scale": "f", "vocab_centers": "f", "vocab_power": "f",
-    "pca_mean": "f", "pca_proj": "f",
+    "pca_mean": "f", "pca_proj": "f", "local_mean": "f", "local_proj": "f",
 }
 
 
@@ -409,6 +412,11 @@ def from_arrays(a: dict[str, np.ndarray], names: tuple[str, ...], k_max: int, wh
         (a["global_desc"].ndim == 2 and a["global_desc"].shape[0] == n
          and a["global_scale"].shape == (n,), "global_desc shape"),
         (("pca_proj" in a) == ("pca_mean" in a), "PCA mean/projection incomplete"),
+        (("local_proj" in a) == ("local_mean" in a)
+         and ("local_proj" not in a
+              or (a["local_proj"].ndim == 2 and a["local_mean"].shape == a["local_proj"].shape[:1]
+                  and a["local_proj"].shape[1] == a["vocab_centers"].shape[-1])),
+         "local projection incomplete or of the wrong shape for the visual words"),
         (descriptors is None or (descriptors.ndim == 2 and descriptors.shape[0] == total),
          "real-patch descriptors do not match the keypoints"),
     ]
@@ -433,7 +441,11 @@ def from_arrays(a: dict[str, np.ndarray], names: tuple[str, ...], k_max: int, wh
                        if "pca_mean" in a else None,
                        pca_proj=jnp.asarray(a["pca_proj"], jnp.float32)
                        if "pca_proj" in a else None,
-                       power=float(a["vocab_power"]))
+                       power=float(a["vocab_power"]),
+                       local_mean=jnp.asarray(a["local_mean"], jnp.float32)
+                       if "local_mean" in a else None,
+                       local_proj=jnp.asarray(a["local_proj"], jnp.float32)
+                       if "local_proj" in a else None)
     gd = dequantise_global(a["global_desc"], a["global_scale"].astype(np.float32))
     return make_egm(points3d, a["R"], a["t"], a["K"], a["dist"], a["sizes"], kps, pis,
                     gd, vocab, names, k_max=k_max, local_desc=lds)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from typing import Any, ClassVar
 
 import flax.struct
 import jax
@@ -50,6 +51,18 @@ class RetrievalConfig:
     pca_dim: int | None = None
     # Added to the PCA eigenvalues before whitening (regularises the smallest directions).
     whiten_eps: float = 1e-6
+    # Local descriptors PCA-whitened to this many dimensions before VLAD (learned on the
+    # sampled reference descriptors, as Jegou et al. 2012 reduce SIFT to 64-D); None: the raw
+    # descriptors. At a fixed VLAD size (n_words * local_dim) it buys more visual words:
+    # the words then separate places rather than descriptor directions that carry little.
+    local_dim: int | None = None
+    # Fields added after maps were written: such a map meant these values (configio).
+    ADDED_FIELDS: ClassVar[dict[str, Any]] = {"local_dim": None}
+
+    def __post_init__(self):
+        if self.n_words < 1 or (self.local_dim is not None and self.local_dim < 1) \
+                or (self.pca_dim is not None and self.pca_dim < 1):
+            raise VrsError("RetrievalConfig.n_words, local_dim and pca_dim must be >= 1")
 
 
 @flax.struct.dataclass
@@ -57,16 +70,29 @@ class Vocabulary:
     """What a query needs to compute a global descriptor comparable to the references'.
 
     Attributes:
-      centers: [k, D] float32 visual words.
+      centers: [k, D] float32 visual words (D: the local descriptors' dimension after the
+        local projection, if any).
       pca_mean: [k * D] float32 or None.
       pca_proj: [k * D, G] float32 whitening projection, or None (then G = k * D).
       power: power-normalisation exponent (static).
+      local_mean: [D0] float32 or None.
+      local_proj: [D0, D] float32 whitening of the local descriptors (D0: theirs), or None
+        (then D0 = D).
     """
 
     centers: jax.Array
     pca_mean: jax.Array | None = None
     pca_proj: jax.Array | None = None
     power: float = flax.struct.field(pytree_node=False, default=0.5)
+    local_mean: jax.Array | None = None
+    local_proj: jax.Array | None = None
+
+    @property
+    def input_dim(self) -> int:
+        """Dimension D0 of the local descriptors the vocabulary takes."""
+        if self.local_proj is not None:
+            return int(self.local_proj.shape[0])
+        return int(self.centers.shape[1])
 
     @property
     def dim(self) -> int:
@@ -101,6 +127,14 @@ def vlad(desc, mask, centers, power: float = 0.5):
     return v / jnp.maximum(jnp.linalg.norm(v), 1e-12)
 
 
+def project_local(desc, vocab: Vocabulary):
+    """Local descriptors [..., D0] -> [..., D] through the vocabulary's local whitening
+    (unchanged without one)."""
+    if vocab.local_proj is None:
+        return desc
+    return jnp.matmul(desc - vocab.local_mean, vocab.local_proj, precision="highest")
+
+
 def apply_pca(v, vocab: Vocabulary):
     """Whitening projection of VLAD vectors [..., k * D] -> [..., G], L2-normalised."""
     if vocab.pca_proj is None:
@@ -112,6 +146,7 @@ def apply_pca(v, vocab: Vocabulary):
 @jax.jit
 def _global_batch(desc, mask, vocab: Vocabulary):
     """[B, K, D], [B, K] -> [B, G] global descriptors."""
+    desc = project_local(jnp.asarray(desc, jnp.float32), vocab)
     v = jax.vmap(lambda d, m: vlad(d, m, vocab.centers, vocab.power))(desc, mask)
     return apply_pca(v, vocab)
 
@@ -131,7 +166,7 @@ def global_descriptor(desc: np.ndarray, mask: np.ndarray | None, vocab: Vocabula
 def global_descriptors(descs: list[np.ndarray], masks: list[np.ndarray] | None,
                        vocab: Vocabulary) -> np.ndarray:
     """Global descriptors [N, G] float32 of N images (padded to one shape, one jitted call)."""
-    d = int(vocab.centers.shape[1])
+    d = vocab.input_dim
     kmax = padded_size(max([len(x) for x in descs] + [1]))
     n = len(descs)
     D = np.zeros((n, kmax, d), np.float32)
@@ -161,8 +196,16 @@ def learn_vocabulary(descs: list[np.ndarray], cfg: RetrievalConfig = RetrievalCo
     rng = np.random.default_rng(cfg.seed)
     if len(allx) > cfg.max_train_descriptors:
         allx = allx[np.sort(rng.choice(len(allx), cfg.max_train_descriptors, replace=False))]
+    local = {}
+    if cfg.local_dim is not None:
+        if cfg.local_dim > allx.shape[1]:
+            raise VrsError(f"RetrievalConfig.local_dim {cfg.local_dim} exceeds the local "
+                           f"descriptors' dimension {allx.shape[1]}")
+        mean, proj = pca_whitening(allx, cfg.local_dim, cfg.whiten_eps)
+        allx = (allx - mean) @ proj
+        local = dict(local_mean=jnp.asarray(mean), local_proj=jnp.asarray(proj))
     centers = kmeans(allx, cfg.n_words, cfg.kmeans_iters, cfg.seed)
-    vocab = Vocabulary(centers=jnp.asarray(centers), power=cfg.power)
+    vocab = Vocabulary(centers=jnp.asarray(centers), power=cfg.power, **local)
     if cfg.pca_dim is not None:
         v = global_descriptors(descs, None, vocab)
         dim = min(cfg.pca_dim, len(v) - 1)
