@@ -174,6 +174,7 @@ def test_named_config_comments_match_values():
     assert (paper.nerf.net_depth, paper.nerf.net_width, paper.nerf.num_samples_coarse,
             paper.nerf.num_samples_fine, paper.nerf.max_steps) == (8, 256, 128, 128, 200_000)
     assert (cpu.egm.features.keypoints.max_keypoints, cpu.egm.k_max) == (1024, 256)
+    assert (cpu.egm.retrieval.n_words, cpu.egm.retrieval.local_dim) == (32, 32)  # 1024-D
     assert (cpu.nerf.encoding, cpu.nerf.net_depth, cpu.nerf.net_width,
             cpu.nerf.num_samples_coarse, cpu.nerf.max_steps) == ("hashgrid", 2, 64, 32, 4000)
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
