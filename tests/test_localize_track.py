@@ -5,6 +5,8 @@ and the reference choice on their own."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -245,7 +247,9 @@ def test_a_tracked_pose_its_own_matches_contradict_is_not_kept(loc, stream):
     wrong = out.result.replace(t=out.result.t + np.float32([0.03 * scale, 0, 0]))
     pred = (np.asarray(wrong.R), np.asarray(wrong.t))  # no jump from the prediction
     reason = track.rejection(wrong, "localized", *pred, scale, cfg, True, out.check)
-    assert reason and "check pass" in reason and "0.030 of the scene scale" in reason
+    assert reason and "check pass" in reason
+    away = float(re.search(r"is ([0-9.]+) of the scene scale", reason).group(1))
+    assert away == pytest.approx(0.03, abs=0.005), reason  # the 3% shift, as the pose moved
     assert track.rejection(wrong, "localized", *pred, scale, cfg, True, None) is None
     failed = out.check.replace(success=False)
     assert "found no pose" in track.rejection(wrong, "localized", *pred, scale, cfg, True,
@@ -368,7 +372,9 @@ def test_tracking_pass_renders_at_most_its_budget(tiny_map, stream):
     size = np.asarray(stream.sizes[i], np.float32)
     n = {}
     for budget in (0, 24):
-        cfg = dataclasses.replace(base, track=dataclasses.replace(base.track, keypoints=budget))
+        # the check pass without its guided pass renders nothing of its own
+        cfg = dataclasses.replace(base, track=dataclasses.replace(
+            base.track, keypoints=budget, check_guided=False))
         out = jax.device_get(track.track_step(m, q, stream.R[i], stream.t[i], size, cfg))
         n[budget] = int(out.result.n_rendered_first)
         assert int(out.check.n_rendered) == n[budget]
@@ -397,3 +403,24 @@ def test_a_check_pose_far_from_the_prediction_reanchors_the_motion():
     # kept by the tracking pass itself (tracked, not by check): appended, no re-anchoring
     own = dataclasses.replace(r, by_check=False)
     assert [e[0] for e in track.updated_history(history, 2, own, 1.0, cfg)] == [1, 2]
+
+
+def test_check_pose_gets_the_guided_pass(loc, stream):
+    """track.check_guided: the check pass's pose goes through the guided pass (map points
+    rendered at it, render mode), so its render count grows and the pose stays within the
+    stream's bound; off, the check pose is the check pass's own."""
+    import dataclasses
+
+    import jax
+
+    m, cfg = loc.map, loc.cfg
+    i = 3
+    q = loc.prepare(stream.image_paths[i], stream.K[i])
+    size = np.asarray(stream.sizes[i], np.float32)
+    out = {}
+    for on in (False, True):
+        c = dataclasses.replace(cfg, track=dataclasses.replace(cfg.track, check_guided=on))
+        out[on] = jax.device_get(track.track_step(m, q, stream.R[i], stream.t[i], size, c))
+    assert int(out[True].check.n_rendered) > int(out[False].check.n_rendered)
+    dt, dr = _errors(out[True].check, stream, i)
+    assert bool(out[True].check.success) and dt < MAX_T_M and dr < MAX_R_DEG, (dt, dr)

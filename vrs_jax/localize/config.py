@@ -106,6 +106,13 @@ class TrackConfig:
     # pass's was within 1-5% on most of them, yet only 5 frames were kept.
     keep_uncertain_check: bool = True
     check_needs_overlap: bool = False
+    # Run the guided pass (the config's, as full localization does after its first pass) from
+    # the check pass's pose: map points rendered there and matched near their projections.
+    # On the walk's held-out leg rebuilt with the whitened retrieval (render mode, README
+    # "Re-run on the leg's map rebuilt") tracking went from 8% / 20% to 12% / 26% within
+    # 1% / 2% (full localization 20% / 36%), on fox from 90% / 90% to 90% / 100%; ~60 ms
+    # more per tracked frame. On the earlier leg map (leg_new) it had gained nothing.
+    check_guided: bool = True
     # Map points the tracking pass renders (render mode; the longest tracks near a query
     # keypoint, as the guided pass's guided_keypoints): the check pass matches the frame to
     # these only, so more than a guided pass (started from a refined pose) needs. 0: the

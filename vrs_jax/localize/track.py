@@ -250,6 +250,8 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
     if cfg.track.max_disagreement <= 0:  # not checked: no check pass
         return TrackStep(res, res)
     chk = check_pass(m, q, cfg, idx, desc, mask)
+    if cfg.track.check_guided:  # a full localization's guided pass, from the check's pose
+        chk, _, _ = st.guided_pass_described(m, q, cfg, s, chk)
     return TrackStep(res, chk.replace(n_rendered=res.n_rendered_first + chk.n_rendered,
                                       n_rendered_first=res.n_rendered_first))
 
