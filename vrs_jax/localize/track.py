@@ -16,7 +16,9 @@ a frame needs only the guided pass, started from a predicted pose instead of a f
     check       the frame matched to the same candidates without the prediction (every
                 query keypoint against every candidate descriptor, as the first pass
                 matches; nothing rendered again), RANSAC and refinement: a pose that owes
-                nothing to the prediction (:func:`check_pass`)
+                nothing to the prediction (:func:`check_pass`); then, with
+                ``track.check_guided``, the config's guided pass from that pose (map points
+                rendered there), as full localization refines its first pass
     accept      the verdict of the pose confidence is "localized", enough inliers, the
                 pose did not jump far from the prediction, and the check pass's pose agrees
                 with it (:func:`rejection`); else the check pass's pose if it has enough
