@@ -110,8 +110,10 @@ class TrackConfig:
     # the check pass's pose: map points rendered there and matched near their projections.
     # On the walk's held-out leg rebuilt with the whitened retrieval (render mode, README
     # "Re-run on the leg's map rebuilt") tracking went from 8% / 20% to 12% / 26% within
-    # 1% / 2% (full localization 20% / 36%), on fox from 90% / 90% to 90% / 100%; ~60 ms
-    # more per tracked frame. On the earlier leg map (leg_new) it had gained nothing.
+    # 1% / 2% (full localization 20% / 36%), on fox from 90% / 90% to 90% / 100%; a tracked
+    # frame there 0.199 -> 0.219 s (one run each). A similar pass tried on the earlier leg
+    # map (leg_new) had gained nothing. It renders anew the points the tracking pass
+    # rendered near the prediction (no reuse of the check pass's inliers yet).
     check_guided: bool = True
     # Map points the tracking pass renders (render mode; the longest tracks near a query
     # keypoint, as the guided pass's guided_keypoints): the check pass matches the frame to
