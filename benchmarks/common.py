@@ -333,9 +333,10 @@ def localize_cfg(ctx: SceneCtx, mode: str, size: int | None = None, config: str 
 
 
 def localize_overrides(items: list[str], defaults: Any = None) -> dict[str, Any]:
-    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields, and
-    optional floats: ``none`` or a number); ``defaults``: another config dataclass instance
-    whose fields to override (e.g. a TrackConfig)."""
+    """``KEY=VALUE`` -> typed LocalizeConfig overrides (bool, int or float fields, optional
+    floats: ``none`` or a number, and tuples of names joined by ``+``, e.g.
+    ``guided_sources=render+real``); ``defaults``: another config dataclass instance whose
+    fields to override (e.g. a TrackConfig)."""
     from vrs_jax.localize.config import LocalizeConfig
 
     defaults = LocalizeConfig() if defaults is None else defaults
@@ -350,6 +351,9 @@ def localize_overrides(items: list[str], defaults: Any = None) -> dict[str, Any]
             if val.strip().lower() == "none":
                 out[key] = None
                 continue
+        if _ and isinstance(cur, tuple) and all(isinstance(v, str) for v in cur):
+            out[key] = tuple(v.strip() for v in val.split("+") if v.strip())
+            continue
         if not _ or not isinstance(cur, (bool, int, float)):
             raise VrsError(f"expected KEY=VALUE of a number/bool field of "
                            f"{type(defaults).__name__}, got {item!r}")

@@ -2,7 +2,7 @@
 full localization of every frame and the COLMAP SIFT reference, per frame.
 
     python -m benchmarks.track --map MAPDIR [--format F --root DIR [--opt query_range=A:B]]
-        [--mode render|real] [--modes track,full,sift] [--jump-at N --jump-len M]
+        [--mode render|real] [--modes track,full,cached,sift] [--jump-at N --jump-len M]
         [--max-frames N] [--localize KEY=VALUE] [--track KEY=VALUE] [--json FILE]
         [--plot FILE.png]
 
@@ -10,8 +10,11 @@ The queries (the map's own held-out split, or those of --format/--root as for
 ``experiments.localize``) are taken in name order, the capture order of a video, as one
 stream. ``track``: the first frame and any frame whose tracking is rejected are localized in
 full, every other frame by the guided pass alone from the constant-velocity prediction
-(``vrs_jax.localize.track``); ``full``: every frame localized in full (retrieval, first pass,
-guided passes) by the same ``Localizer``; ``sift``: the COLMAP SIFT reference per frame
+(``vrs_jax.localize.track``; in render mode its full localizations share a cache of
+rendered reference descriptors, ``track.cache_mb``); ``full``: every frame localized in
+full (retrieval, first pass, guided passes) by the same ``Localizer``, no cache; ``cached``
+(render mode): the same with a cache of ``track.cache_mb`` for the whole stream, as a
+stream's full localizations have it; ``sift``: the COLMAP SIFT reference per frame
 (``benchmarks.localize.sift_row``). With --jump-at N --jump-len M a fourth run tracks the
 stream with frames N .. N+M-1 dropped (the camera jumps), and reports how many frames after
 the gap it takes to track again and to be right again (within 2% of the scene scale and
@@ -46,7 +49,7 @@ from vrs_jax.localize import Localizer
 from vrs_jax.localize.config import TrackConfig
 from vrs_jax.localize.track import frame_image
 
-RUNS = ("track", "full", "sift")
+RUNS = ("track", "full", "cached", "sift")
 RIGHT = (0.02, 2.0)  # "right again" after a jump: 2% of the scene scale, 2 deg
 
 
@@ -247,7 +250,8 @@ def plot(runs: dict[str, dict], scale: float, path: str, jump: tuple[int, int] |
     from benchmarks.figures import save
 
     fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    styles = {"full": ("tab:blue", "-"), "track": ("tab:orange", "-"),
+    styles = {"full": ("tab:blue", "-"), "cached": ("tab:purple", "-."),
+              "track": ("tab:orange", "-"),
               "sift": ("tab:gray", ":"), "track, jump": ("tab:green", "--")}
     for label, run in runs.items():
         c, ls = styles.get(label, ("k", "-"))
@@ -294,15 +298,22 @@ def main(argv: list[str] | None = None) -> int:
     scale = metrics.scene_scale(scene.centers[np.asarray(scene.has_pose, bool)])
     print(f"{n} frames ({queries.names[0]} .. {queries.names[-1]}), scene scale "
           f"{scale:.4g}, {cfg.source} mode, config {args.config or m.config.name}")
+    if "cached" in modes and not (cfg.source == "render" and cfg.track.cache_mb > 0):
+        raise VrsError("--modes cached needs render mode and a track.cache_mb > 0 "
+                       "(--track cache_mb=64)")
     loc = Localizer(m, cfg)
     w, h = (int(s) for s in queries.sizes[0])
-    loc.warmup(w, h, track=True)
+    loc.warmup(w, h, track=True)  # with the stream's cache: compiles the cached path too
     progress = not args.quiet
+
     runs: dict[str, dict] = {}
     every = np.arange(n)
     if "full" in modes:
         runs["full"] = run_full(loc, queries, every, progress)
-    if "track" in modes:
+    if "cached" in modes:  # a Localizer of its own: an empty cache, compiled already
+        runs["cached"] = run_full(Localizer(m, cfg, cache_mb=cfg.track.cache_mb), queries,
+                                  every, progress)
+    if "track" in modes:  # each stream keeps its own cache (cfg.track.cache_mb)
         runs["track"] = run_track(loc, queries, every, progress)
     if jump is not None:
         keep = np.concatenate([np.arange(jump[0]), np.arange(jump[1], n)])

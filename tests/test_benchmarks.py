@@ -354,6 +354,8 @@ def test_localize_overrides_are_typed_and_checked():
     assert got == {"top_k": 3, "guided_radius": 8.0, "guided_threshold_px": None,
                    "depth_guided": False}
     assert common.localize_overrides(["guided_threshold_px=2.5"]) == {"guided_threshold_px": 2.5}
+    assert common.localize_overrides(["guided_sources=render+real"]) == {
+        "guided_sources": ("render", "real")}
     for bad in ("source=real", "nosuch=1", "top_k", "top_k=three"):
         with pytest.raises(VrsError):
             common.localize_overrides([bad])
@@ -436,13 +438,18 @@ def test_track_benchmark_json_and_plot(tiny_map, stream_scene, tmp_path):
 
     out, png = tmp_path / "track.json", tmp_path / "track.png"
     assert track.main(["--map", str(tiny_map), "--format", "7scenes", "--root",
-                       str(stream_scene), "--config", "test", "--modes", "track,full",
-                       "--max-frames", "5", "--jump-at", "2", "--jump-len", "1", "--json",
+                       str(stream_scene), "--config", "test", "--modes",
+                       "track,full,cached", "--track", "cache_mb=5", "--max-frames", "5",
+                       "--jump-at", "2", "--jump-len", "1", "--json",
                        str(out), "--plot", str(png), "--work", str(tmp_path), "--quiet"]) == 0
     doc = json.loads(out.read_text())
     assert doc["benchmark"] == "track" and ENV_KEYS <= set(doc)
     rows = {r["run"]: r for r in doc["rows"]}
-    assert set(rows) == {"track", "full", "track, jump"}
+    assert set(rows) == {"track", "full", "cached", "track, jump"}
+    # the cached run's poses are the uncached ones (float16 descriptors), and it renders less
+    full, cached = doc["runs"]["full"], doc["runs"]["cached"]
+    np.testing.assert_allclose(cached["t_err"], full["t_err"], atol=5e-3)
+    assert sum(cached["rendered"]) < sum(full["rendered"])
     assert rows["track"]["n_frames"] == 5 and rows["track, jump"]["n_frames"] == 4
     assert rows["track"]["n_tracked"] + rows["track"]["n_relocalized"] + rows["track"][
         "n_full_no_prior"] == 5

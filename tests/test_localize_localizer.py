@@ -103,6 +103,19 @@ def test_warmup_and_render_source(tiny_map):
     assert localize.localize._cache_size() == before + 2
 
 
+def test_warmup_compiles_the_cached_path_and_leaves_the_cache_empty(tiny_map, queries):
+    from vrs_jax.localize.run import JITTED_STAGES
+
+    loc = Localizer(maps.load_map(tiny_map), localize.get_config("test", retries=1),
+                    cache_mb=5)
+    loc.warmup(160, 120)
+    assert len(loc.cache) == 0 and loc.cache.misses == 0 and loc.cache.budget == 5_000_000
+    sizes = {k: f._cache_size() for k, f in JITTED_STAGES.items()}
+    loc.localize_image(queries.image_paths[0], queries.K[0], queries.dist[0])
+    assert len(loc.cache) > 0  # it rendered and kept references, compiling nothing new
+    assert {k: f._cache_size() for k, f in JITTED_STAGES.items()} == sizes
+
+
 def test_descriptor_cache_is_lru_within_budget():
     from vrs_jax.localize.cache import DescriptorCache
 

@@ -424,3 +424,25 @@ def test_check_pose_gets_the_guided_pass(loc, stream):
     assert int(out[True].check.n_rendered) > int(out[False].check.n_rendered)
     dt, dr = _errors(out[True].check, stream, i)
     assert bool(out[True].check.success) and dt < MAX_T_M and dr < MAX_R_DEG, (dt, dr)
+
+
+def test_a_streams_full_localizations_share_a_descriptor_cache(tiny_map, stream):
+    """With ``track.cache_mb`` the frames localized in full keep their references' rendered
+    descriptors for the rest of the stream: the same frame localized in full twice renders
+    its references once, and the poses are the uncached ones (float16 descriptors: well
+    under a centimetre). The Localizer keeps no cache after the stream."""
+    m = maps.load_map(tiny_map).without_descriptors()
+    never = localize.TrackConfig(min_inliers=10**6)  # every frame is localized in full
+    cfg = localize.get_config("test", track=never)
+    frames = [stream.image_paths[0], stream.image_paths[0]]
+    plain = Localizer(m, cfg).track(frames, stream.K[0])
+    loc = Localizer(m, localize.get_config(
+        "test", track=localize.TrackConfig(min_inliers=10**6, cache_mb=5)))
+    out = loc.track(frames, stream.K[0])
+    assert loc.cache is None and not any(r.tracked for r in out)
+    k = len(np.asarray(out[0].retrieved))
+    assert loc.stream_cache_stats["misses"] == k and loc.stream_cache_stats["hits"] == k
+    assert int(out[1].n_rendered) < int(out[0].n_rendered)
+    for a, b in zip(plain, out, strict=True):
+        assert bool(a.success) == bool(b.success)
+        np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), atol=5e-3)

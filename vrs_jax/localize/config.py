@@ -130,8 +130,17 @@ class TrackConfig:
     # own acceptance (a "localized" verdict, inliers, jump) then fails and relocalizes the
     # frame.
     prior_verdicts: tuple[str, ...] = ("localized", "uncertain")
+    # Render mode: the frames localized in full keep their references' rendered first-pass
+    # descriptors in a cache of this many MB for the rest of the stream (Localizer.track
+    # makes one when its Localizer has none; localize.cache): a reference is rendered from
+    # its own camera, so a later frame that retrieves it again renders nothing for it. 0:
+    # none. cpu-small sets 64 (its comment).
+    cache_mb: float = 0.0
 
     def __post_init__(self):
+        if not (isinstance(self.cache_mb, (int, float)) and 0 <= self.cache_mb < float("inf")):
+            raise VrsError(f"TrackConfig.cache_mb must be a finite number >= 0, got "
+                           f"{self.cache_mb!r}")
         if (self.top_k < 0 or self.min_inliers < 1 or self.max_gap < 1 or self.keypoints < 0
                 or self.refine_passes < 0 or self.min_retrieval_overlap < 0):
             raise VrsError("TrackConfig.top_k and keypoints must be >= 0, min_inliers >= 1, "
@@ -373,7 +382,11 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # held-out leg, 50 frames, README "Tracking keeps the check pass's pose"): 96 points
     # kept 24 frames by tracking, 12.0 / 24.0% within 1% / 2%; 128: 26, 16.0 / 20.0%; 160:
     # 26, 18.0 / 28.0%; 192: 26, 18.0 / 24.0%; 256: 26,
-    # 18.0 / 24.0%.
+    # 18.0 / 24.0%. A stream keeps the rendered reference descriptors of its full
+    # localizations in 64 MB (track.cache_mb; a cpu-small reference's 256 float16
+    # descriptors take 64 kB: a thousand references): on the walk's held-out leg (render,
+    # benchmarks.track --cache-mb 64, README "A stream's full localizations cached") full
+    # localization of every frame went from 0.670 to 0.379 s per frame, 20 / 36% to 22 / 34%.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
@@ -390,7 +403,7 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 guided_reuse_inliers=True, guided_keypoints=96,
                                 render_grid=8, early_exit_inliers=24, render_chunk=2048,
                                 retries=1, track=TrackConfig(min_retrieval_overlap=2,
-                                                             keypoints=160)),
+                                                             keypoints=160, cache_mb=64)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,

@@ -89,6 +89,7 @@ class Localizer:
         self.scale = map_scale(self.map)  # the scene scale, for the confidence of retries
         self.mesh = batch_lib.query_mesh(devices)
         self._placed_map: Map | list[Map] | None = None
+        self.stream_cache_stats: dict[str, float] | None = None  # the last track()'s cache
 
     # ------------------------------------------------------------------ preparation
 
@@ -145,7 +146,9 @@ class Localizer:
         (:mod:`~vrs_jax.localize.track`): the first frame, and any frame whose tracking is
         rejected, is localized in full (:meth:`localize_query`); the others run only the
         guided pass from the constant-velocity prediction (one jitted tracking step,
-        compiled once). Settings: ``cfg.track``.
+        compiled once). Settings: ``cfg.track``; in render mode without a cache of its own
+        the Localizer keeps the stream's rendered references in one of
+        ``cfg.track.cache_mb`` for this call (its counts in ``stream_cache_stats``).
 
         Args:
           frames: image files or arrays ([H, W] grey / [H, W, 3] RGB), in stream order.
@@ -165,9 +168,17 @@ class Localizer:
           VrsError for frames that are not a list, or a K / dist count that is not one or
           one per frame.
         """
-        return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
-                                      self.localize_query, names=names, progress=progress,
-                                      sizes=sizes)
+        own = self.cache is None and self.cfg.source == "render" and self.cfg.track.cache_mb > 0
+        if own:  # the stream's full localizations share a cache of cfg.track.cache_mb
+            self.cache = DescriptorCache(self.cfg.track.cache_mb)
+        try:
+            return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
+                                          self.localize_query, names=names,
+                                          progress=progress, sizes=sizes)
+        finally:
+            if own:
+                self.stream_cache_stats = self.cache.stats()
+                self.cache = None
 
     def _localize_cached(self, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered
@@ -263,16 +274,26 @@ class Localizer:
     def warmup(self, width: int, height: int, track: bool = False) -> None:
         """Compile query preparation and ``localize`` for images of this size (a blank image:
         no keypoints, so a fallback result, with the shapes of any query), once per attempt
-        ``cfg.retries`` allows (each retry's config is its own compilation); with ``track``
-        also the tracking step of :meth:`track`."""
+        ``cfg.retries`` allows (each retry's config is its own compilation), and with a
+        descriptor cache (or, with ``track``, the stream's: ``cfg.track.cache_mb``) its
+        per-reference path too (the cache is left empty); with ``track`` also the tracking
+        step of :meth:`track`."""
         for what, v in (("width", width), ("height", height)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise VrsError(f"warmup: {what} must be an integer >= 1, got {v!r}")
         f = float(max(width, height))
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
         q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")
+        mine = self.cache
+        if track and mine is None and self.cfg.source == "render" and self.cfg.track.cache_mb:
+            self.cache = DescriptorCache(self.cfg.track.cache_mb)  # the stream's, for now
         for a in range(retry_lib.attempts(self.map, self.cfg)):  # each retry's config too
-            jax.block_until_ready(localize(self.map, q, retry_lib.attempt_config(self.cfg, a)))
+            c = retry_lib.attempt_config(self.cfg, a)
+            jax.block_until_ready(localize(self.map, q, c))
+            if self.cache is not None:  # the cached path's stages, per attempt
+                jax.block_until_ready(self._localize_cached(q, c).R)
+        # warm-up renders are not the stream's: an empty cache (none if it was the stream's)
+        self.cache = None if mine is None else DescriptorCache(mine.budget / 1e6)
         if track:
             jax.block_until_ready(track_lib.track_step(
                 self.map, q, self.map.egm.R[0], self.map.egm.t[0], (width, height), self.cfg))
