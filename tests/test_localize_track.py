@@ -446,3 +446,42 @@ def test_a_streams_full_localizations_share_a_descriptor_cache(tiny_map, stream)
     for a, b in zip(plain, out, strict=True):
         assert bool(a.success) == bool(b.success)
         np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), atol=5e-3)
+
+
+def test_reference_views_track_on_cached_own_view_descriptors(tiny_map, stream):
+    """track.reference_views: the tracking and check passes match the frame to the
+    references' own-view first-pass descriptors, from the stream's cache (rendered once per
+    stream), not to points rendered at the prediction: the stream is tracked within the
+    render bound, a tracked frame whose references are cached renders only its check pose's
+    guided pass, and the step's views are the descriptors a full localization caches."""
+    import dataclasses
+
+    m = maps.load_map(tiny_map).without_descriptors()
+    base = localize.get_config("test", guided_passes=1, guided_keypoints=24,
+                               confidence=ConfidenceConfig(max_centre_std=MAX_CENTRE_STD))
+    cfg = dataclasses.replace(base, track=dataclasses.replace(
+        base.track, reference_views=True, cache_mb=5))
+    loc = Localizer(m, cfg)
+    idx = list(range(6))
+    out = loc.track([stream.image_paths[i] for i in idx], stream.K[0])
+    for r, i in zip(out, idx, strict=True):
+        dt, dr = _errors(r, stream, i)
+        assert r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+    tracked = [r for r in out if r.tracked]
+    assert len(tracked) >= len(idx) - 2, [(r.tracked, r.rejected) for r in out]
+    stats = loc.stream_cache_stats
+    assert stats["hits"] > 0 and stats["entries"] == stats["misses"]  # each rendered once
+    # once the references are cached, a tracked frame renders the check pose's guided pass
+    # only (at most guided_keypoints), not the tracking pass's points at the prediction
+    warm = [r for r in tracked[1:] if int(r.n_rendered) <= cfg.guided_keypoints]
+    assert warm, [int(r.n_rendered) for r in tracked]
+    # the views are the cached path's descriptors of those references
+    loc.cache = localize.cache.DescriptorCache(5)
+    q = loc.prepare(stream.image_paths[2], stream.K[2])
+    v_idx, desc, mask, n = loc._reference_views(q, stream.R[2], stream.t[2],
+                                                np.asarray(stream.sizes[2], np.float32), cfg)
+    assert n > 0 and mask.shape == desc.shape[:2] and bool(np.asarray(mask).any())
+    for c, i in enumerate(np.asarray(v_idx).tolist()):
+        if i in loc.cache:
+            np.testing.assert_allclose(np.asarray(desc[c]), loc.cache.get(i), atol=1e-2)
+    loc.cache = None

@@ -136,6 +136,15 @@ class TrackConfig:
     # its own camera, so a later frame that retrieves it again renders nothing for it. 0:
     # none. cpu-small sets 64 (its comment).
     cache_mb: float = 0.0
+    # Render mode: the tracking and check passes match the frame to the step's references'
+    # first-pass descriptors rendered from their own cameras (query-independent: kept in the
+    # stream's cache, so a reference is rendered once per stream) instead of to their map
+    # points rendered at the predicted pose; the check pose's guided pass (check_guided)
+    # still renders at that pose. Where the prediction misses by more than the search
+    # radius (the walk's held-out leg: frames 2-17% of the scale apart) the check pass is
+    # then the first pass of a full localization on those references. cpu-small: on (its
+    # comment).
+    reference_views: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.cache_mb, (int, float)) and 0 <= self.cache_mb < float("inf")):
@@ -387,6 +396,13 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # descriptors take 64 kB: a thousand references): on the walk's held-out leg (render,
     # benchmarks.track --cache-mb 64, README "A stream's full localizations cached") full
     # localization of every frame went from 0.670 to 0.379 s per frame, 20 / 36% to 22 / 34%.
+    # The tracking and check passes match the frame to those cached own-view descriptors of
+    # the references nearest the prediction (track.reference_views) instead of rendering 160
+    # map points at the prediction: on that leg tracking went from 12 / 26% (0.250 s per
+    # frame) to 22 / 30% (0.353 s), full localization 20 / 36% (0.710 s); the jump recovered
+    # in 2 frames instead of 4; fox's 10 far-apart frames 90 / 100% -> 100 / 100% (0.308 ->
+    # 0.424 s, full 0.339 s). Without the early exit when rendering a missing reference: leg
+    # 24 / 40% at 0.444 s, fox 100% at 0.807 s.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
@@ -403,7 +419,8 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 guided_reuse_inliers=True, guided_keypoints=96,
                                 render_grid=8, early_exit_inliers=24, render_chunk=2048,
                                 retries=1, track=TrackConfig(min_retrieval_overlap=2,
-                                                             keypoints=160, cache_mb=64)),
+                                                             keypoints=160, cache_mb=64,
+                                                             reference_views=True)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,

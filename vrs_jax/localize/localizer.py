@@ -41,6 +41,8 @@ from vrs_jax.localize.run import JITTED_STAGES, localize, run_stages
 from vrs_jax.localize.stages import LocalizeResult, failure_reason
 from vrs_jax.maps import Map, load_map_for
 
+_first_pass_keypoints = jax.jit(first_pass_keypoints, static_argnames=("cfg",))
+
 
 def _resolve_config(cfg: LocalizeConfig | str | None, source: str | None) -> LocalizeConfig:
     if cfg is None:
@@ -174,7 +176,8 @@ class Localizer:
         try:
             return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
                                           self.localize_query, names=names,
-                                          progress=progress, sizes=sizes)
+                                          progress=progress, sizes=sizes,
+                                          views=self._reference_views)
         finally:
             if own:
                 self.stream_cache_stats = self.cache.stats()
@@ -190,27 +193,60 @@ class Localizer:
         :func:`~vrs_jax.localize.stages.early_exit_render`)."""
         m = self.map
         s = run_stages(m, q, cfg, until="retrieval", jitted=JITTED_STAGES)
-        idx = np.asarray(s["idx"])
-        # hits: cached references used; misses: references rendered (an early exit leaves
-        # the others neither)
-        descs = [self.cache.get(int(i)) if int(i) in self.cache else None for i in idx]
-        have = np.array([d is not None for d in descs])
-        missing = np.flatnonzero(~have)
-        n_rendered = 0
-        for c in missing:
-            if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have,
-                                                                             cfg):
-                break
-            self.cache.get(int(idx[c]))  # a miss
-            one = {"idx": jnp.asarray([idx[c]], jnp.int32)}
-            one.update(JITTED_STAGES["render"](m, q, cfg, one))
-            n_rendered += int(one["n_rendered"])
-            descs[c] = np.asarray(JITTED_STAGES["describe"](m, q, cfg, one)["desc"][0])
-            have[c] = True
-            self.cache.put(int(idx[c]), descs[c])
+        descs, have, n_rendered = self._candidates(q, s, cfg)
         s.update(self._described(s, descs, have, cfg))
         s["n_rendered"] = jnp.int32(n_rendered)
         return run_stages(m, q, cfg, jitted=JITTED_STAGES, state=s, after="describe")["result"]
+
+    def _candidates(self, q: Query, s: dict, cfg: LocalizeConfig
+                    ) -> tuple[list, np.ndarray, int]:
+        """Descriptors of the candidates ``s["idx"]`` [k]: (per candidate [K_max, D] or None,
+        have [k] bool, patches rendered). The cached ones are always used; the missing ones
+        are rendered best first (and cached) until, with ``cfg.early_exit_inliers``, the
+        descriptors at hand give a RANSAC seed with that many inliers."""
+        idx = np.asarray(s["idx"])
+        # hits: cached references used; misses: references rendered (an early exit leaves
+        # the others neither)
+        descs = [self.cache.get(int(i)) if self.cache is not None and int(i) in self.cache
+                 else None for i in idx]
+        have = np.array([d is not None for d in descs])
+        n_rendered = 0
+        for c in np.flatnonzero(~have):
+            if cfg.early_exit_inliers > 0 and have.any() and self._confident(q, s, descs, have,
+                                                                             cfg):
+                break
+            if self.cache is not None:
+                self.cache.get(int(idx[c]))  # a miss
+            descs[c], n = self._render_reference(q, cfg, int(idx[c]))
+            n_rendered += n
+            have[c] = True
+        return descs, have, n_rendered
+
+    def _render_reference(self, q: Query, cfg: LocalizeConfig, i: int
+                          ) -> tuple[np.ndarray, int]:
+        """Reference ``i``'s first-pass descriptors [K_max, D] rendered from its own camera
+        (one jitted call; the query gives only shapes), stored in the cache when there is
+        one; and the patches rendered."""
+        one = {"idx": jnp.asarray([i], jnp.int32)}
+        one.update(JITTED_STAGES["render"](self.map, q, cfg, one))
+        desc = np.asarray(JITTED_STAGES["describe"](self.map, q, cfg, one)["desc"][0])
+        if self.cache is not None:
+            self.cache.put(i, desc)
+        return desc, int(one["n_rendered"])
+
+    def _reference_views(self, q: Query, R_pred: np.ndarray, t_pred: np.ndarray, size: Any,
+                         cfg: LocalizeConfig) -> tuple:
+        """A tracking step's references at the predicted pose and their own-view first-pass
+        descriptors, from the cache or rendered best first under the config's early exit
+        (:meth:`_candidates`; :func:`track.track_step`'s ``views``): (idx [k], desc
+        [k, K_max, D], mask [k, K_max] (a reference not rendered: none), patches rendered)."""
+        f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+        idx = np.asarray(track_lib.step_references_jit(self.map, q, f32(R_pred), f32(t_pred),
+                                                       f32(size), cfg))
+        s = {"idx": jnp.asarray(idx)}
+        descs, have, n_rendered = self._candidates(q, s, cfg)
+        d = self._described(s, descs, have, cfg)
+        return idx, d["desc"], d["desc_mask"], n_rendered
 
     def _described(self, s: dict, descs: list, have: np.ndarray, cfg: LocalizeConfig
                    ) -> dict:
@@ -218,7 +254,7 @@ class Localizer:
         masked out)."""
         blank = np.zeros_like(next(d for d in descs if d is not None))
         desc = np.stack([blank if d is None else d for d in descs])
-        mask = first_pass_keypoints(self.map, s["idx"], cfg) & jnp.asarray(have)[:, None]
+        mask = _first_pass_keypoints(self.map, s["idx"], cfg) & jnp.asarray(have)[:, None]
         return {"desc": jnp.asarray(desc), "desc_mask": mask}
 
     def _confident(self, q: Query, s: dict, descs: list, have: np.ndarray,
@@ -295,5 +331,11 @@ class Localizer:
         # warm-up renders are not the stream's: an empty cache (none if it was the stream's)
         self.cache = None if mine is None else DescriptorCache(mine.budget / 1e6)
         if track:
+            R0, t0 = self.map.egm.R[0], self.map.egm.t[0]
+            views = None
+            if self.cfg.source == "render" and self.cfg.track.reference_views:
+                held, self.cache = self.cache, None  # warm-up renders are not the stream's
+                views = self._reference_views(q, R0, t0, (width, height), self.cfg)[:3]
+                self.cache = held
             jax.block_until_ready(track_lib.track_step(
-                self.map, q, self.map.egm.R[0], self.map.egm.t[0], (width, height), self.cfg))
+                self.map, q, R0, t0, (width, height), self.cfg, views))

@@ -229,19 +229,39 @@ def check_pass(m: Map, q: Query, cfg: LocalizeConfig, idx: Array, desc: Array, m
     return res
 
 
+def step_k(m: Map, cfg: LocalizeConfig) -> int:
+    """References a tracking step uses: ``track.top_k`` or the config's top_k."""
+    return min(cfg.track.top_k or cfg.top_k, m.egm.num_images)
+
+
+def step_references(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
+                    cfg: LocalizeConfig) -> Array:
+    """[k] int32: the references of a tracking step at the predicted pose
+    (:func:`nearest_references`, k = :func:`step_k`)."""
+    return nearest_references(m, q.K, R_pred, t_pred, size, step_k(m, cfg),
+                              cfg.track.max_ray_angle_deg)
+
+
 def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
-                cfg: LocalizeConfig) -> TrackStep:
+                cfg: LocalizeConfig, views: tuple[Array, Array, Array] | None = None
+                ) -> TrackStep:
     st.check(m, cfg)
-    k = min(cfg.track.top_k or cfg.top_k, m.egm.num_images)
-    idx = nearest_references(m, q.K, R_pred, t_pred, size, k, cfg.track.max_ray_angle_deg)
-    s: st.State = {"idx": idx}
-    if cfg.source == "real" or not cfg.guided_render:  # the passes read s["desc"]
-        if cfg.source == "render":
+    pass_cfg = cfg
+    if views is not None:  # the references' own-view descriptors, given (cached by the host)
+        idx, desc0, mask0 = views
+        s: st.State = {"idx": idx, "desc": desc0, "desc_mask": mask0}
+        pass_cfg = dataclasses.replace(cfg, guided_render=False)  # the passes read s["desc"]
+    else:
+        idx = step_references(m, q, R_pred, t_pred, size, cfg)
+        s = {"idx": idx}
+    if views is None and (cfg.source == "real" or not cfg.guided_render):
+        if cfg.source == "render":  # the passes read s["desc"]
             s.update(st.render(m, q, dataclasses.replace(cfg, early_exit_inliers=0), s))
         s.update(st.describe(m, q, cfg, s))
     res = start_result(q, idx, R_pred, t_pred).replace(
         n_rendered=s.get("n_rendered", jnp.int32(0)))
-    res, inl, (desc, mask) = st.guided_pass_described(m, q, track_pass_config(cfg), s, res)
+    res, inl, (desc, mask) = st.guided_pass_described(m, q, track_pass_config(pass_cfg), s,
+                                                      res)
     ok = jnp.any(inl)  # the refined pose was kept (success with inliers)
     res = res.replace(success=ok, fallback=~ok, R_first=res.R, t_first=res.t,
                       n_inliers_first=res.n_inliers, n_inliers_guided=jnp.int32(-1),
@@ -259,15 +279,21 @@ def _track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
 
 
 _track_jit = jax.jit(_track_step, static_argnames=("cfg",))
+step_references_jit = jax.jit(step_references, static_argnames=("cfg",))
 
 
 def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
-               cfg: LocalizeConfig) -> TrackStep:
+               cfg: LocalizeConfig, views: tuple[Any, Any, Any] | None = None) -> TrackStep:
     """One tracking step (jitted; cfg static; one compilation per map and config).
 
     Args:
       m: the map; q: the frame's Query; R_pred [3, 3], t_pred [3]: the predicted
         world-to-camera pose; size: [2] the frame's width and height in pixels.
+      views: render mode with ``track.reference_views``: (idx [k] int32 the references of
+        :func:`nearest_references`, desc [k, K_max, D] their first-pass descriptors rendered from
+        their own cameras, mask [k, K_max]); the tracking and check passes match the frame
+        to these (nothing rendered at the prediction), the check pose's guided pass renders
+        at that pose. None: the references' points rendered at the predicted pose.
     Returns:
       TrackStep: ``result`` with ``retrieved`` the references used
       (:func:`nearest_references`); R_first, t_first, n_inliers_first the tracking pass's
@@ -276,7 +302,9 @@ def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
       ``check``: the check pass's result (:func:`check_pass`; success False without a pose).
     """
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-    return _track_jit(m, q, f32(R_pred), f32(t_pred), f32(size), cfg)
+    if views is not None:
+        views = (jnp.asarray(views[0], jnp.int32), f32(views[1]), jnp.asarray(views[2], bool))
+    return _track_jit(m, q, f32(R_pred), f32(t_pred), f32(size), cfg, views)
 
 
 track_step._cache_size = _track_jit._cache_size  # compilations so far (tests)
@@ -483,7 +511,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
                  prepare: Callable[..., Query], full: Callable[[Query], LocalizeResult],
                  names: Sequence[str] | None = None, progress: bool = False,
                  step: Callable[..., TrackStep] = track_step,
-                 sizes: Sequence[Any] | None = None) -> list[TrackResult]:
+                 sizes: Sequence[Any] | None = None,
+                 views: Callable[..., tuple] | None = None) -> list[TrackResult]:
     """Track a stream: per frame a :class:`TrackResult`, in order (module docstring).
 
     Args:
@@ -496,6 +525,10 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
       progress: a progress bar.
       sizes: per frame the (width, height) a frame file is read at (a dataset read with
         ``--downscale``, whose K belong to the scaled images); None: the file's own size.
+      views: render mode with ``track.reference_views``: ``views(q, R_pred, t_pred, size,
+        cfg) -> (idx, desc, mask, n_rendered)``, the step's references, their own-view
+        first-pass descriptors and the patches rendered to get them (``Localizer``'s, from
+        its descriptor cache); None: rendered at the prediction.
     """
     frames, Ks, dists = stream_inputs(frames, K, dist)
     if names is not None and len(names) != len(frames):
@@ -531,7 +564,13 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         if pred is not None:
             extra.update(R_pred=pred[0], t_pred=pred[1])
             size = np.array([gray.shape[1], gray.shape[0]], np.float32)
-            out_step = jax.device_get(step(m, q, pred[0], pred[1], size, cfg))
+            own = (views(q, pred[0], pred[1], size, cfg) if views is not None
+                   and cfg.source == "render" and tc.reference_views else None)
+            out_step = jax.device_get(step(m, q, pred[0], pred[1], size, cfg,
+                                           None if own is None else own[:3]))
+            if own is not None:  # the references' patches rendered for this frame (misses)
+                out_step = TrackStep(*(r.replace(n_rendered=r.n_rendered + own[3])
+                                       for r in out_step))
             r, conf, verdict, kept = accepted(m, q, cfg, out_step, pred, scale)
             extra.update(kept)
         if not extra.get("tracked"):
