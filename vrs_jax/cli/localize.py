@@ -18,8 +18,10 @@ reference image, flagged in summary.json; an unreadable query image is listed wi
 --sequence localizes the queries in name order as a video stream (``Localizer.track``): the
 first frame, and any frame whose tracking is rejected, in full; every other frame by the
 guided pass alone from the pose predicted by constant velocity (no retrieval, no first
-pass). summary.json then gives per query whether it was ``tracked``, its confidence and
-its ``latency_s``; a blank or unreadable frame is listed with its reason and tracking resumes
+pass), checked by a pass without the prediction (render mode with ``cpu-small``: both on
+the nearest references' own-view descriptors, rendered once per stream and cached).
+summary.json then gives per query whether it was ``tracked``, its confidence and its
+``latency_s``; a blank or unreadable frame is listed with its reason and tracking resumes
 after it.
 An existing --out is never replaced without --overwrite, and only once the new run is
 complete (written into OUTDIR.tmp-PID first; OUTDIR.lock marks a folder in use). A run record

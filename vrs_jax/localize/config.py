@@ -394,15 +394,17 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # 18.0 / 24.0%. A stream keeps the rendered reference descriptors of its full
     # localizations in 64 MB (track.cache_mb; a cpu-small reference's 256 float16
     # descriptors take 64 kB: a thousand references): on the walk's held-out leg (render,
-    # benchmarks.track --cache-mb 64, README "A stream's full localizations cached") full
-    # localization of every frame went from 0.670 to 0.379 s per frame, 20 / 36% to 22 / 34%.
+    # benchmarks.track --modes full,cached, README "Tracking on the references' own views")
+    # full localization of every frame went from 0.620 to 0.405 s per frame, 20 / 36% to
+    # 22 / 34%.
     # The tracking and check passes match the frame to those cached own-view descriptors of
     # the references nearest the prediction (track.reference_views) instead of rendering 160
-    # map points at the prediction: on that leg tracking went from 12 / 26% (0.250 s per
-    # frame) to 22 / 30% (0.353 s), full localization 20 / 36% (0.710 s); the jump recovered
-    # in 2 frames instead of 4; fox's 10 far-apart frames 90 / 100% -> 100 / 100% (0.308 ->
-    # 0.424 s, full 0.339 s). Without the early exit when rendering a missing reference: leg
-    # 24 / 40% at 0.444 s, fox 100% at 0.807 s.
+    # map points at the prediction: on that leg tracking went from 12 / 26% (0.251 s per
+    # frame, a84e3c0) to 22 / 30% (0.326 s on 8e22999; full localization 20 / 36% at
+    # 0.620 s, with the cache 22 / 34% at 0.405 s), no wrong pose localized; the jump
+    # recovered in 2 frames instead of 4; fox's 10 far-apart frames 90 / 100% -> 100 / 100%
+    # (0.281 s, full 0.258 s). Without the early exit when rendering a missing reference:
+    # leg 24 / 40% at 0.444 s, fox 100% at 0.807 s.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
