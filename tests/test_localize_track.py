@@ -462,8 +462,13 @@ def test_reference_views_track_on_cached_own_view_descriptors(tiny_map, stream):
     cfg = dataclasses.replace(base, track=dataclasses.replace(
         base.track, reference_views=True, cache_mb=5))
     loc = Localizer(m, cfg)
+    w, h = (int(v) for v in stream.sizes[0])
+    loc.warmup(w, h, track=True)  # the views without a cache; the stream's cache is not kept
+    assert loc.cache is None
+    compiled = track.track_step._cache_size()
     idx = list(range(6))
     out = loc.track([stream.image_paths[i] for i in idx], stream.K[0])
+    assert track.track_step._cache_size() == compiled  # the warm-up compiled the step
     for r, i in zip(out, idx, strict=True):
         dt, dr = _errors(r, stream, i)
         assert r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
