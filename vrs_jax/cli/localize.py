@@ -21,8 +21,8 @@ guided pass alone from the pose predicted by constant velocity (no retrieval, no
 pass), checked by a pass without the prediction (render mode with ``cpu-small``: both on
 the nearest references' own-view descriptors, rendered once per stream and cached).
 summary.json then gives per query whether it was ``tracked``, its confidence and its
-``latency_s``; a blank or unreadable frame is listed with its reason and tracking resumes
-after it.
+``latency_s``, and under ``tracking`` the counts and the stream's descriptor cache (hits,
+misses); a blank or unreadable frame is listed with its reason and tracking resumes after it.
 An existing --out is never replaced without --overwrite, and only once the new run is
 complete (written into OUTDIR.tmp-PID first; OUTDIR.lock marks a folder in use). A run record
 (command line, settings, code and library versions, timings) goes to OUTDIR/run.json.
@@ -258,7 +258,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
             pq.update(tracked=tr.tracked, by_check=tr.by_check, unconfirmed=tr.unconfirmed,
                       relocalized=tr.relocalized,
                       latency_s=round(tr.latency_s, 4), rejected=tr.rejected)
-        summary["tracking"] = tracking_counts(tracks)
+        summary["tracking"] = {**tracking_counts(tracks),
+                               "descriptor_cache": info.get("stream_cache")}
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))
     if args.report:
         from vrs_jax.eval.html import write_report
@@ -301,7 +302,10 @@ def localize_sequence(m: maps.Map, queries, cfg: localize.LocalizeConfig,
                 [full_image_evals(m, r.retrieved) for r in done] or [0.0]))
             if cfg.source == "render" else 0.0,
             "timing_s": timing, "n_success": int(sum(bool(r.success) for r in done)),
-            "errors": {tr.name: tr.error for tr in tracks if tr.error is not None}}
+            "errors": {tr.name: tr.error for tr in tracks if tr.error is not None},
+            # the stream's cache of rendered references (render mode, track.cache_mb): entries,
+            # bytes, hits, misses, evictions; None without one
+            "stream_cache": loc.stream_cache_stats}
     return queries, results, info, tracks
 
 
