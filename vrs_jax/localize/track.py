@@ -7,9 +7,13 @@ a frame needs only the guided pass, started from a predicted pose instead of a f
                 once more (scaled to the frame gap on SE(3)); one good pose: that pose
     references  the k reference images with the most map points in view of the predicted
                 camera (:func:`reference_scores`), instead of retrieval
+    views       (render mode, ``track.reference_views``) their first-pass descriptors
+                rendered from their own cameras, given by the host from the stream's
+                descriptor cache (rendered once per stream): ``track_step``'s ``views``
     track pass  the guided pass (``stages.guided_pass``) from the predicted pose: those
-                images' map points projected with it, rendered there (render mode), matched
-                within ``track.radius_px`` of their projections, the pose refined
+                images' map points projected with it, described by the views or rendered at
+                the prediction (render mode without views), matched within
+                ``track.radius_px`` of their projections, the pose refined
     re-match    ``track.refine_passes`` guided passes from the tracked pose on the patches
                 the track pass rendered (nothing rendered again), with the config's guided
                 radius and inlier threshold: the tight gates of a guided pass
