@@ -170,8 +170,8 @@ class Localizer:
           VrsError for frames that are not a list, or a K / dist count that is not one or
           one per frame.
         """
-        own = self.cache is None and self.cfg.source == "render" and self.cfg.track.cache_mb > 0
-        if own:  # the stream's full localizations share a cache of cfg.track.cache_mb
+        own = self._stream_cache()  # the stream's full localizations and views share it
+        if own:
             self.cache = DescriptorCache(self.cfg.track.cache_mb)
         try:
             return track_lib.track_frames(self.map, self.cfg, frames, K, dist, self.prepare,
@@ -182,6 +182,12 @@ class Localizer:
             if own:
                 self.stream_cache_stats = self.cache.stats()
                 self.cache = None
+
+    def _stream_cache(self) -> bool:
+        """Whether :meth:`track` makes a cache of ``cfg.track.cache_mb`` for its stream (render
+        mode, a positive budget, no cache of the Localizer's own)."""
+        return (self.cache is None and self.cfg.source == "render"
+                and self.cfg.track.cache_mb > 0)
 
     def _localize_cached(self, q: Query, cfg: LocalizeConfig) -> LocalizeResult:
         """Retrieval, then each retrieved reference's descriptors from the cache or rendered
@@ -321,7 +327,7 @@ class Localizer:
         K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
         q = self.prepare(np.zeros((height, width), np.float32), K, None, "warm-up image")
         mine = self.cache
-        if track and mine is None and self.cfg.source == "render" and self.cfg.track.cache_mb:
+        if track and self._stream_cache():
             self.cache = DescriptorCache(self.cfg.track.cache_mb)  # the stream's, for now
         for a in range(retry_lib.attempts(self.map, self.cfg)):  # each retry's config too
             c = retry_lib.attempt_config(self.cfg, a)
