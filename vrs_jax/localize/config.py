@@ -145,6 +145,22 @@ class TrackConfig:
     # then the first pass of a full localization on those references. cpu-small: on (its
     # comment).
     reference_views: bool = False
+    # The frame pass: when the previous frame's verdict was "localized", the frame is first
+    # matched to that frame's keypoints that sat on map points (each keypoint paired with
+    # the map point projected nearest it at that frame's pose, within associate_px, mutual
+    # nearest), its pose solved from those points (RANSAC and refinement, no prediction)
+    # and the guided pass rendered at that pose, as a SLAM tracker follows the last frame's
+    # map points: nothing is rendered from the references' cameras. Kept when its verdict
+    # is "localized" (and min_inliers); else the tracking step above runs as without it.
+    # Off: on the walk's held-out leg (render mode, benchmarks.track, README "Tracking
+    # against the previous frame") a frame-pass frame costs 0.12-0.16 s against 0.2-0.6 s,
+    # but its pose inherits the anchor's error (the leg's frames are 2-17% of the scale
+    # apart and the confidence calls poses 3-6% off "localized"): 22 / 34% within 1% / 2%
+    # at 0.313 s per frame against 22 / 30% at 0.326 s, with 1 wrong pose localized against
+    # 0; kept on "uncertain" verdicts too, 10 / 18% at 0.213 s with 6. associate_px 1
+    # instead of 2: 22 / 32%, the same poses within 0.1%.
+    frame_pass: bool = False
+    associate_px: float = 2.0
 
     def __post_init__(self):
         if not (isinstance(self.cache_mb, (int, float)) and 0 <= self.cache_mb < float("inf")):
@@ -163,6 +179,8 @@ class TrackConfig:
                            "max_ray_angle_deg in (0, 180]")
         if self.threshold_px is not None and self.threshold_px <= 0:
             raise VrsError("TrackConfig.threshold_px must be > 0 (or None)")
+        if not self.associate_px > 0:
+            raise VrsError(f"TrackConfig.associate_px must be > 0, got {self.associate_px!r}")
         bad = set(self.prior_verdicts) - set(VERDICTS[:2])
         if bad:
             raise VrsError(f"TrackConfig.prior_verdicts must be among {VERDICTS[:2]}, got "

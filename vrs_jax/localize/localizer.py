@@ -345,3 +345,10 @@ class Localizer:
                 self.cache = held
             jax.block_until_ready(track_lib.track_step(
                 self.map, q, R0, t0, (width, height), self.cfg, views))
+            if self.cfg.track.frame_pass:  # the frame pass and the map points of a pose
+                k = min(self.cfg.top_k, self.map.egm.num_images)
+                pid = track_lib.frame_points_jit(self.map, q, R0, t0,
+                                                 jnp.arange(k, dtype=jnp.int32),
+                                                 self.cfg.track.associate_px)
+                jax.block_until_ready(track_lib.frame_step(
+                    self.map, q, q.desc, pid, (width, height), self.cfg))

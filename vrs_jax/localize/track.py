@@ -3,6 +3,10 @@
 A robot's frames arrive in order, each close to the last. With the previous poses as a prior,
 a frame needs only the guided pass, started from a predicted pose instead of a first pass's:
 
+    frame pass  (``track.frame_pass``) the frame matched to the previous good frame's
+                keypoints that sit on map points, RANSAC and refinement on those points, the
+                guided pass rendered at that pose (:func:`frame_step`); kept on the tests a
+                check pass's pose passes (:func:`pose_rejection`), else the steps below
     predict     constant velocity: the relative motion of the last two good poses applied
                 once more (scaled to the frame gap on SE(3)); one good pose: that pose
     references  the k reference images with the most map points in view of the predicted
@@ -54,6 +58,7 @@ from tqdm import tqdm
 from vrs_jax import geometry
 from vrs_jax.data.images import read_gray
 from vrs_jax.errors import VrsError
+from vrs_jax.features.matching import match, planar_sq_distances
 from vrs_jax.localize import stages as st
 from vrs_jax.localize.confidence import (
     LOCALIZED_AT,
@@ -63,6 +68,7 @@ from vrs_jax.localize.confidence import (
     weakest_test,
 )
 from vrs_jax.localize.config import LocalizeConfig
+from vrs_jax.localize.pnp import ransac_pnp, refine_seed
 from vrs_jax.localize.query import Query
 from vrs_jax.localize.stages import LocalizeResult
 from vrs_jax.maps import Map
@@ -314,6 +320,89 @@ def track_step(m: Map, q: Query, R_pred: Array, t_pred: Array, size: Array,
 track_step._cache_size = _track_jit._cache_size  # compilations so far (tests)
 
 
+# ----------------------------------------------------------------------------- frame pass
+
+
+def frame_points(m: Map, q: Query, R: Array, t: Array, idx: Array, radius_px: float
+                 ) -> Array:
+    """[Kq] int32 per query keypoint the map point it sits on at the pose (R [3, 3], t [3])
+    or -1: the map points of the references ``idx`` [k] projected with the pose, each query
+    keypoint paired with the nearest projection within ``radius_px`` when that keypoint is
+    also the projection's nearest (mutual nearest neighbours)."""
+    pid = m.egm.point_idx[idx].reshape(-1)  # [C]
+    X = m.egm.points3d[jnp.maximum(pid, 0)]
+    uv, z = geometry.project(q.K, R, t, X)
+    valid = m.egm.kp_mask[idx].reshape(-1) & (pid >= 0) & (z > 1e-6)
+    d2 = planar_sq_distances(q.points2d, uv)  # [Kq, C]
+    d2 = jnp.where(q.mask[:, None] & valid[None, :], d2, jnp.inf)
+    c = jnp.argmin(d2, axis=1)  # [Kq]
+    kq = jnp.arange(d2.shape[0])
+    ok = (d2[kq, c] < jnp.float32(radius_px) ** 2) & (jnp.argmin(d2, axis=0)[c] == kq)
+    return jnp.where(ok, pid[c], -1).astype(jnp.int32)
+
+
+def frame_match(m: Map, q: Query, cfg: LocalizeConfig, prev_desc: Array, prev_pid: Array
+                ) -> tuple[Array, Array, Array]:
+    """The frame matched to the previous frame's keypoints on map points (prev_desc
+    [Kp, D], prev_pid [Kp], -1: none; mutual nearest neighbour and ratio test) and lifted to
+    2D-3D: uv [Kq, 2], X [Kq, 3], ok [Kq]."""
+    j, valid, _ = match(q.desc, q.mask, prev_desc, prev_pid >= 0, cfg.ratio, cfg.mutual)
+    pid = prev_pid[j]
+    return q.points2d, m.egm.points3d[jnp.maximum(pid, 0)], valid & (pid >= 0)
+
+
+def _frame_step(m: Map, q: Query, prev_desc: Array, prev_pid: Array, size: Array,
+                cfg: LocalizeConfig) -> tuple[LocalizeResult, Array]:
+    st.check(m, cfg)
+    uv, X, ok = frame_match(m, q, cfg, prev_desc, prev_pid)
+    R0, t0, inl0, ok0 = ransac_pnp(uv, X, ok, q.K, cfg.pnp)
+    pose = refine_seed(R0, t0, inl0, ok0, uv, X, ok, q.K, cfg.pnp)
+    std = st.centre_uncertainty(q.points2d, q.K, pose.R, pose.t, X, pose.inliers,
+                                cfg.confidence.focal_std)
+    idx = step_references(m, q, pose.R, pose.t, size, cfg)
+    s: st.State = {"idx": idx}
+    if cfg.source == "real" or not cfg.guided_render:  # the passes read s["desc"]
+        if cfg.source == "render":
+            s.update(st.render(m, q, dataclasses.replace(cfg, early_exit_inliers=0), s))
+        s.update(st.describe(m, q, cfg, s))
+    # the frame pass's pose seeds the guided pass, which replaces it whenever it refines a
+    # pose (no inliers to beat): the pose kept is the one the map seen from it supports
+    start = start_result(q, idx, pose.R, pose.t).replace(success=pose.success)
+    res, inl, (desc, mask) = st.guided_pass_described(m, q, cfg, s, start)
+    for _ in range(cfg.track.refine_passes):
+        res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
+    kept = pose.success & (res.n_inliers > 0)
+    res = res.replace(success=kept, fallback=~kept, R_first=pose.R, t_first=pose.t,
+                      n_inliers_first=pose.n_inliers, n_matches=jnp.sum(ok).astype(jnp.int32),
+                      centre_std_first=jnp.where(pose.success, std, jnp.nan))
+    return res, frame_points(m, q, res.R, res.t, idx, cfg.track.associate_px)
+
+
+_frame_jit = jax.jit(_frame_step, static_argnames=("cfg",))
+frame_points_jit = jax.jit(frame_points, static_argnames=("radius_px",))
+
+
+def frame_step(m: Map, q: Query, prev_desc: Array, prev_pid: Array, size: Array,
+               cfg: LocalizeConfig) -> tuple[LocalizeResult, Array]:
+    """The frame pass (jitted; cfg static): the frame matched to the previous good frame's
+    keypoints on map points (prev_desc [Kp, D], prev_pid [Kp] int32, -1: none;
+    :func:`frame_points` at that frame's pose), RANSAC and refinement on those points (the
+    pose owes nothing to the prediction), then the guided pass rendered at that pose from the
+    :func:`nearest_references` of that pose, and ``track.refine_passes`` re-matching passes.
+
+    Returns:
+      (result, pid [Kq]): ``result`` the guided pose (``R_first``, ``t_first``,
+      ``n_inliers_first``, ``centre_std_first`` the frame pass's own; success False without
+      a guided pose); ``pid`` the frame's keypoints on map points at that pose, for the next
+      frame.
+    """
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    return _frame_jit(m, q, f32(prev_desc), jnp.asarray(prev_pid, jnp.int32), f32(size), cfg)
+
+
+frame_step._cache_size = _frame_jit._cache_size  # compilations so far (tests)
+
+
 # ----------------------------------------------------------------------------- acceptance
 
 
@@ -388,6 +477,8 @@ class TrackResult:
     rejected: why the tracking pass's pose was not kept (None if kept or not attempted);
     by_check: the pose kept is the check pass's (:func:`check_pass`; the tracking pass's
     was rejected, ``rejected`` says why), tracked all the same (no full localization);
+    by_frame: the pose kept is the frame pass's (:func:`frame_step`: matched to the previous
+    good frame; the tracking step did not run);
     unconfirmed: the tracked pose passed every test but the check pass, which found no pose
     at all, and the frame's full localization was not "localized" either: the tracked pose
     is kept, its verdict "uncertain" (confidence capped below the localized threshold);
@@ -420,6 +511,7 @@ class TrackResult:
     attempt_shift: float = float("nan")
     tracked: bool = False
     by_check: bool = False
+    by_frame: bool = False
     unconfirmed: bool = False
     attempted: bool = False
     rejected: str | None = None
@@ -516,7 +608,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
                  names: Sequence[str] | None = None, progress: bool = False,
                  step: Callable[..., TrackStep] = track_step,
                  sizes: Sequence[Any] | None = None,
-                 views: Callable[..., tuple] | None = None) -> list[TrackResult]:
+                 views: Callable[..., tuple] | None = None,
+                 frame: Callable[..., tuple] = frame_step) -> list[TrackResult]:
     """Track a stream: per frame a :class:`TrackResult`, in order (module docstring).
 
     Args:
@@ -533,6 +626,7 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         cfg) -> (idx, desc, mask, n_rendered)``, the step's references, their own-view
         first-pass descriptors and the patches rendered to get them (``Localizer``'s, from
         its descriptor cache); None: rendered at the prediction.
+      frame: the frame pass (``track.frame_pass``; :func:`frame_step`).
     """
     frames, Ks, dists = stream_inputs(frames, K, dist)
     if names is not None and len(names) != len(frames):
@@ -543,6 +637,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
     scale = map_scale(m)
     k = min(cfg.top_k, m.egm.num_images)
     history: list[tuple[int, np.ndarray, np.ndarray]] = []
+    prev = None  # the last frame's (descriptors [Kq, D], map point per keypoint [Kq]) if
+    # its verdict was "localized": the frame pass's anchor
     out: list[TrackResult] = []
     bar = tqdm(range(len(frames)), desc=f"track ({cfg.source})", unit="frame",
                disable=not progress)
@@ -565,9 +661,19 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
             continue
         pred = predict_pose(history, i, tc.max_gap)
         extra: dict[str, Any] = {"attempted": pred is not None}
-        if pred is not None:
+        pid = None  # the frame's keypoints on map points, from the frame pass
+        size = np.array([gray.shape[1], gray.shape[0]], np.float32)
+        if pred is not None and tc.frame_pass and prev is not None:
+            r, pid = jax.device_get(frame(m, q, prev[0], prev[1], size, cfg))
+            conf, verdict = confidence_of(r, scale, cfg)
+            # only a "localized" pose is kept and anchors the next frame: the frame pass
+            # inherits its anchor's error (keypoints paired with map points at that pose)
+            if pose_rejection(r, verdict, cfg) is None:
+                extra.update(R_pred=pred[0], t_pred=pred[1], tracked=True, by_frame=True)
+            else:
+                pid = None
+        if pred is not None and not extra.get("tracked"):
             extra.update(R_pred=pred[0], t_pred=pred[1])
-            size = np.array([gray.shape[1], gray.shape[0]], np.float32)
             own = (views(q, pred[0], pred[1], size, cfg) if views is not None
                    and cfg.source == "render" and tc.reference_views else None)
             out_step = jax.device_get(step(m, q, pred[0], pred[1], size, cfg,
@@ -590,6 +696,14 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
+        if tc.frame_pass and res.success and res.verdict == "localized":
+            if pid is None:  # the pose's keypoints on map points, at its references
+                pid = frame_points_jit(m, q, jnp.asarray(res.R, jnp.float32),
+                                       jnp.asarray(res.t, jnp.float32),
+                                       jnp.asarray(res.retrieved, jnp.int32), tc.associate_px)
+            prev = (q.desc, pid)
+        elif tc.frame_pass:
+            prev = None
         out.append(res)
     return out
 
@@ -654,7 +768,7 @@ def updated_history(history: list[tuple[int, np.ndarray, np.ndarray]], i: int,
         return history
     R, t = np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
     entry = (i, R, t)
-    if (not res.tracked or res.by_check) and res.R_pred is not None:
+    if (not res.tracked or res.by_check or res.by_frame) and res.R_pred is not None:
         dt, dr = jump(R, t, res.R_pred, res.t_pred)
         if dt > tc.max_jump * scale or dr > tc.max_jump_deg:
             if len(history) < 2:
