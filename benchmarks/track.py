@@ -22,7 +22,8 @@ the gap it takes to track again and to be right again (within 2% of the scene sc
 distance of the cameras to their centroid, as benchmarks.localize), median errors, the
 median latency per frame (reading and query preparation included, compilation excluded by
 a warm-up), and how the frames were localized: tracked (in brackets those whose pose is
-the check pass's: the tracking pass's disagreed with the frame's own matches), relocalized
+the check pass's: the tracking pass's disagreed with the frame's own matches; then those
+whose pose is the frame pass's, ``track.frame_pass``), relocalized
 (tracking rejected, then localized in full), in full without a prior (the first frame, after
 a gap), flagged (unreadable or blank); and wrong 'localized': poses more than 5% of the
 scene scale or 5 deg off whose verdict is "localized" (a wrong pose reported as right).
@@ -131,6 +132,7 @@ def run_track(loc: Localizer, queries, idx: np.ndarray, progress: bool) -> dict:
             "latency_s": [tr.latency_s for tr in tracks],
             "tracked": [tr.tracked for tr in tracks],
             "by_check": [tr.by_check for tr in tracks],
+            "by_frame": [tr.by_frame for tr in tracks],
             "unconfirmed": [tr.unconfirmed for tr in tracks],
             "relocalized": [tr.relocalized for tr in tracks],
             "full_no_prior": [tr.error is None and not tr.attempted for tr in tracks],
@@ -208,6 +210,7 @@ def summary_row(label: str, run: dict, scale: float) -> dict:
         wrong = (dt > WRONG_T * scale) | (dr > WRONG_R) | ~np.isfinite(dt)
         row.update(n_tracked=int(tr.sum()), n_relocalized=int(np.sum(run["relocalized"])),
                    n_by_check=int(np.sum(run.get("by_check", [False] * len(tr)))),
+                   n_by_frame=int(np.sum(run.get("by_frame", [False] * len(tr)))),
                    n_unconfirmed=int(np.sum(run.get("unconfirmed", [False] * len(tr)))),
                    # poses more than 5% / 5 deg off that the result calls "localized"
                    n_wrong_localized=int(np.sum(wrong & (np.asarray(run["verdict"])
@@ -226,13 +229,14 @@ def summary_row(label: str, run: dict, scale: float) -> dict:
 def print_table(rows: list[dict], title: str) -> None:
     print(common.table(
         ["run", "frames", "1%/1deg", "2%/2deg", "median (% scale, deg)", "median s/frame",
-         "tracked s/frame", "tracked (by check)", "relocalized", "lost+recovered",
+         "tracked s/frame", "tracked (by check, by frame)", "relocalized", "lost+recovered",
          "full (no prior)", "flagged", "wrong 'localized'"],
         [[r["run"], r["n_frames"], common.pct(r["recall_relative"]["1pct_1deg"]),
           common.pct(r["recall_relative"]["2pct_2deg"]),
           f"{common.fmt(100 * r['median_t_rel'])}, {common.fmt(r['median_R_deg'])}",
           common.fmt(r["median_latency_s"], 3), common.fmt(r.get("median_latency_tracked_s"), 3),
-          f"{r['n_tracked']} ({r['n_by_check']})" if "n_by_check" in r else "-",
+          f"{r['n_tracked']} ({r['n_by_check']}, {r.get('n_by_frame', 0)})"
+          if "n_by_check" in r else "-",
           r.get("n_relocalized", "-"),
           f"{r['n_lost']}+{r['n_lost_recovered']}" if "n_lost" in r else "-",
           r.get("n_full_no_prior", "-"), r.get("n_flagged", "-"),

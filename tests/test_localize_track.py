@@ -490,3 +490,81 @@ def test_reference_views_track_on_cached_own_view_descriptors(tiny_map, stream):
         if i in loc.cache:
             np.testing.assert_allclose(np.asarray(desc[c]), loc.cache.get(i), atol=1e-2)
     loc.cache = None
+
+
+def _frame_loc(tiny_map):
+    import dataclasses
+
+    m = maps.load_map(tiny_map).without_descriptors()
+    base = localize.get_config("test", guided_passes=1, guided_keypoints=24,
+                               confidence=ConfidenceConfig(max_centre_std=MAX_CENTRE_STD))
+    return Localizer(m, dataclasses.replace(base, track=dataclasses.replace(
+        base.track, frame_pass=True)))
+
+
+def test_frame_pass_tracks_on_the_last_localized_frame(tiny_map, stream):
+    """track.frame_pass: a frame after a "localized" one is matched to that frame's
+    keypoints on map points and verified by the guided pass at its own pose: the stream is
+    tracked within the render bound, a frame-pass frame renders only its guided pass and
+    follows a localized frame, and the warm-up compiles the pass."""
+    loc = _frame_loc(tiny_map)
+    w, h = (int(v) for v in stream.sizes[0])
+    loc.warmup(w, h, track=True)
+    compiled = track.frame_step._cache_size()
+    idx = list(range(6))
+    out = loc.track([stream.image_paths[i] for i in idx], stream.K[0])
+    assert track.frame_step._cache_size() == compiled
+    for r, i in zip(out, idx, strict=True):
+        dt, dr = _errors(r, stream, i)
+        assert r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
+    by_frame = [i for i, r in enumerate(out) if r.by_frame]
+    assert len(by_frame) >= len(idx) - 2, [(r.tracked, r.by_frame, r.verdict) for r in out]
+    for i in by_frame:
+        r = out[i]
+        assert r.tracked and not r.by_check and r.verdict == "localized"
+        assert out[i - 1].verdict == "localized"
+        assert 0 < int(r.n_rendered) <= loc.cfg.guided_keypoints  # its guided pass only
+        assert r.n_inliers >= loc.cfg.track.min_inliers and r.n_inliers_first > 0
+
+
+def test_frame_points_pair_mutual_nearest_projections(tiny_map, stream):
+    """frame_points against a numpy brute force: each paired keypoint's map point projects
+    within the radius, no other candidate projects nearer that keypoint, and no other
+    keypoint lies nearer that projection."""
+    loc = _frame_loc(tiny_map)
+    m, i, radius = loc.map, 2, 2.0
+    q = loc.prepare(stream.image_paths[i], stream.K[i])
+    refs = np.asarray(track.nearest_references(m, q.K, stream.R[i], stream.t[i],
+                                               np.asarray(stream.sizes[i], np.float32), 2, 45.0))
+    pid = np.asarray(track.frame_points(m, q, stream.R[i], stream.t[i], refs, radius))
+    cand = np.asarray(m.egm.point_idx)[refs].reshape(-1)
+    cand = cand[(np.asarray(m.egm.kp_mask)[refs].reshape(-1)) & (cand >= 0)]
+    X = np.asarray(m.egm.points3d)[cand]
+    uv, z = geometry.project(stream.K[i], stream.R[i], stream.t[i], X)
+    uv = np.where((z > 1e-6)[:, None], uv, np.inf)
+    kp = np.asarray(q.points2d)[np.asarray(q.mask)]
+    paired = np.flatnonzero(pid[: len(kp)] >= 0)
+    assert len(paired) >= 10 and np.all(pid[len(kp):] < 0)
+    for a in paired:
+        d_kp = np.linalg.norm(uv - kp[a], axis=1)  # [C] this keypoint to every projection
+        c = np.argmin(d_kp)
+        assert d_kp[c] < radius and np.any(cand[d_kp <= d_kp[c] + 1e-4] == pid[a])
+        d_back = np.linalg.norm(kp - uv[c], axis=1)
+        assert np.argmin(d_back) == a or d_back[a] <= d_back.min() + 1e-4
+    assert len(set(pid[paired].tolist())) == len(paired)  # each map point once
+
+
+def test_frame_pass_without_anchor_points_finds_no_pose(tiny_map, stream):
+    loc = _frame_loc(tiny_map)
+    q = loc.prepare(stream.image_paths[1], stream.K[1])
+    size = np.asarray(stream.sizes[1], np.float32)
+    none = np.full(q.mask.shape, -1, np.int32)
+    r, pid = track.frame_step(loc.map, q, (q.desc, none, np.zeros(3)), size, loc.cfg)
+    assert not bool(r.success) and not np.any(np.asarray(pid) >= 0)
+    # the frame's own keypoints on map points at its true pose: a pose near it
+    refs = track.nearest_references(loc.map, q.K, stream.R[1], stream.t[1], size, 2, 45.0)
+    anchor = track.frame_points(loc.map, q, stream.R[1], stream.t[1], refs,
+                                loc.cfg.track.associate_px)
+    r, pid = track.frame_step(loc.map, q, (q.desc, anchor, np.zeros(3)), size, loc.cfg)
+    dt, dr = _errors(r, stream, 1)
+    assert bool(r.success) and dt < MAX_T_M and dr < MAX_R_DEG and np.any(np.asarray(pid) >= 0)

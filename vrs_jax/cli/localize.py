@@ -210,7 +210,8 @@ def run(args, argv: list[str] | None = None) -> dict:
           f"fallback, {summary['n_unreadable']} unreadable; results in {out / 'results.txt'}")
     if "tracking" in summary:
         tk = summary["tracking"]
-        print(f"tracking: {tk['n_tracked']} tracked ({tk['n_by_check']} by the check pass), "
+        print(f"tracking: {tk['n_tracked']} tracked ({tk['n_by_check']} by the check pass, "
+              f"{tk['n_by_frame']} by the frame pass), "
               f"{tk['n_relocalized']} relocalized, "
               f"{tk['n_full']} localized in full without a prior, {tk['n_flagged']} flagged")
     print(f"verdicts: {summary['n_localized']} localized, {summary['n_uncertain']} uncertain, "
@@ -255,7 +256,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
             pq["retry"] = info["retried"][pq["name"]]
     if tracks is not None:
         for pq, tr in zip(summary["per_query"], tracks, strict=True):
-            pq.update(tracked=tr.tracked, by_check=tr.by_check, unconfirmed=tr.unconfirmed,
+            pq.update(tracked=tr.tracked, by_check=tr.by_check, by_frame=tr.by_frame,
+                      unconfirmed=tr.unconfirmed,
                       relocalized=tr.relocalized,
                       latency_s=round(tr.latency_s, 4), rejected=tr.rejected)
         summary["tracking"] = {**tracking_counts(tracks),
@@ -311,13 +313,14 @@ def localize_sequence(m: maps.Map, queries, cfg: localize.LocalizeConfig,
 
 def tracking_counts(tracks) -> dict:
     """How a stream's frames were localized: tracked (by_check: of them, those whose pose is
-    the check pass's, the tracking pass's rejected), relocalized (tracking rejected, then
-    localized in full), full (no prior: the first frame, or after a gap), flagged
-    (unreadable or blank), and the median latency of the tracked and the full ones."""
+    the check pass's, the tracking pass's rejected; by_frame: the frame pass's), relocalized
+    (tracking rejected, then localized in full), full (no prior: the first frame, or after a
+    gap), flagged (unreadable or blank), and the median latency of the tracked and the full ones."""
     med = lambda xs: float(np.median(xs)) if xs else None  # noqa: E731
     full = [tr for tr in tracks if tr.error is None and not tr.tracked]
     return {"n_tracked": sum(tr.tracked for tr in tracks),
             "n_by_check": sum(tr.by_check for tr in tracks),
+            "n_by_frame": sum(tr.by_frame for tr in tracks),
             "n_relocalized": sum(tr.relocalized for tr in tracks),
             "n_full": sum(tr.error is None and not tr.attempted for tr in tracks),
             "n_flagged": sum(tr.error is not None for tr in tracks),

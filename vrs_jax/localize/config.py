@@ -161,6 +161,8 @@ class TrackConfig:
     # instead of 2: 22 / 32%, the same poses within 0.1%.
     frame_pass: bool = False
     associate_px: float = 2.0
+    frame_disagreement: float = 0.05
+    frame_disagreement_deg: float = 5.0
 
     def __post_init__(self):
         if not (isinstance(self.cache_mb, (int, float)) and 0 <= self.cache_mb < float("inf")):

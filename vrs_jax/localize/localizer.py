@@ -351,4 +351,4 @@ class Localizer:
                                                  jnp.arange(k, dtype=jnp.int32),
                                                  self.cfg.track.associate_px)
                 jax.block_until_ready(track_lib.frame_step(
-                    self.map, q, q.desc, pid, (width, height), self.cfg))
+                    self.map, q, (q.desc, pid, np.zeros(3)), (width, height), self.cfg))

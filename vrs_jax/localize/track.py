@@ -351,53 +351,92 @@ def frame_match(m: Map, q: Query, cfg: LocalizeConfig, prev_desc: Array, prev_pi
     return q.points2d, m.egm.points3d[jnp.maximum(pid, 0)], valid & (pid >= 0)
 
 
-def _frame_step(m: Map, q: Query, prev_desc: Array, prev_pid: Array, size: Array,
-                cfg: LocalizeConfig) -> tuple[LocalizeResult, Array]:
-    st.check(m, cfg)
-    uv, X, ok = frame_match(m, q, cfg, prev_desc, prev_pid)
-    R0, t0, inl0, ok0 = ransac_pnp(uv, X, ok, q.K, cfg.pnp)
-    pose = refine_seed(R0, t0, inl0, ok0, uv, X, ok, q.K, cfg.pnp)
+def frame_seed(q: Query, cfg: LocalizeConfig, X: Array, ok: Array, centre: Array,
+               idx: Array, pose) -> LocalizeResult:
+    """The frame pass's own pose as a result (``pose`` a PoseResult from the matches ok
+    [Kq] of the query keypoints to an anchor frame's map points X [Kq, 3]), with its inlier
+    geometry (the anchor's camera ``centre`` [3] as the reference of every correspondence)
+    and centre uncertainty; ``idx`` [k] the references it reports."""
+    centres = jnp.broadcast_to(centre, X.shape)
+    cov, ang, spread = st.inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, pose.R,
+                                          pose.t, X, centres, pose.inliers)
     std = st.centre_uncertainty(q.points2d, q.K, pose.R, pose.t, X, pose.inliers,
                                 cfg.confidence.focal_std)
+    return start_result(q, idx, pose.R, pose.t).replace(
+        success=pose.success, fallback=~pose.success, n_inliers=pose.n_inliers,
+        n_matches=jnp.sum(ok).astype(jnp.int32), n_inliers_first=pose.n_inliers,
+        inlier_coverage=cov, inlier_ray_angle_deg=ang, inlier_depth_spread=spread,
+        inlier_centre_std=std, centre_std_first=std)
+
+
+class FrameStep(NamedTuple):
+    """A frame pass's output (:func:`frame_step`): ``result`` the pose kept; ``pid`` [Kq]
+    int32 the frame's keypoints on map points at it (-1: none; all -1 without a pose);
+    ``R_guided`` [3, 3], ``t_guided`` [3] the guided pass's own pose from the frame pass's
+    (``result.R_first``), whether kept or not, and ``guided_ok`` [] bool whether it found
+    one: the map seen from the frame pass's pose, evidence the anchor frame did not give."""
+
+    result: LocalizeResult
+    pid: Array
+    R_guided: Array
+    t_guided: Array
+    guided_ok: Array
+
+
+def _frame_step(m: Map, q: Query, anchor: tuple[Array, Array, Array], size: Array,
+                cfg: LocalizeConfig) -> FrameStep:
+    st.check(m, cfg)
+    uv, X, ok = frame_match(m, q, cfg, anchor[0], anchor[1])
+    R0, t0, inl0, ok0 = ransac_pnp(uv, X, ok, q.K, cfg.pnp)
+    pose = refine_seed(R0, t0, inl0, ok0, uv, X, ok, q.K, cfg.pnp)
     idx = step_references(m, q, pose.R, pose.t, size, cfg)
     s: st.State = {"idx": idx}
     if cfg.source == "real" or not cfg.guided_render:  # the passes read s["desc"]
         if cfg.source == "render":
             s.update(st.render(m, q, dataclasses.replace(cfg, early_exit_inliers=0), s))
         s.update(st.describe(m, q, cfg, s))
-    # the frame pass's pose seeds the guided pass, which replaces it whenever it refines a
-    # pose (no inliers to beat): the pose kept is the one the map seen from it supports
-    start = start_result(q, idx, pose.R, pose.t).replace(success=pose.success)
-    res, inl, (desc, mask) = st.guided_pass_described(m, q, cfg, s, start)
+    # the guided pass from the frame pass's pose (its own pose whatever its inliers: no
+    # inliers to beat), kept if it has as many inliers as the frame pass (as a full
+    # localization's guided pass replaces its first pass's pose)
+    seed = frame_seed(q, cfg, X, ok, anchor[2], idx, pose)
+    g, inl, (desc, mask) = st.guided_pass_described(m, q, cfg, s,
+                                                     seed.replace(n_inliers=jnp.int32(0)))
+    g_ok = jnp.any(inl)
+    res = jax.tree.map(lambda a, b: jnp.where(g_ok & (g.n_inliers >= seed.n_inliers), a, b),
+                       g.replace(n_inliers_first=seed.n_inliers), seed.replace(
+                           n_inliers_guided=g.n_inliers_guided,
+                           n_rendered=g.n_rendered))
     for _ in range(cfg.track.refine_passes):
         res, _ = st.guided_rematch(m, q, cfg, idx, res, desc, mask)
-    kept = pose.success & (res.n_inliers > 0)
-    res = res.replace(success=kept, fallback=~kept, R_first=pose.R, t_first=pose.t,
-                      n_inliers_first=pose.n_inliers, n_matches=jnp.sum(ok).astype(jnp.int32),
-                      centre_std_first=jnp.where(pose.success, std, jnp.nan))
-    return res, frame_points(m, q, res.R, res.t, idx, cfg.track.associate_px)
+    pid = frame_points(m, q, res.R, res.t, idx, cfg.track.associate_px)
+    return FrameStep(res, jnp.where(res.success, pid, -1), g.R, g.t, g_ok)
 
 
 _frame_jit = jax.jit(_frame_step, static_argnames=("cfg",))
 frame_points_jit = jax.jit(frame_points, static_argnames=("radius_px",))
 
 
-def frame_step(m: Map, q: Query, prev_desc: Array, prev_pid: Array, size: Array,
-               cfg: LocalizeConfig) -> tuple[LocalizeResult, Array]:
-    """The frame pass (jitted; cfg static): the frame matched to the previous good frame's
-    keypoints on map points (prev_desc [Kp, D], prev_pid [Kp] int32, -1: none;
-    :func:`frame_points` at that frame's pose), RANSAC and refinement on those points (the
-    pose owes nothing to the prediction), then the guided pass rendered at that pose from the
-    :func:`nearest_references` of that pose, and ``track.refine_passes`` re-matching passes.
+def frame_step(m: Map, q: Query, anchor: tuple[Any, Any, Any], size: Array,
+               cfg: LocalizeConfig) -> FrameStep:
+    """The frame pass (jitted; cfg static): the frame matched to an anchor frame's keypoints
+    on map points, RANSAC and refinement on those points (the pose owes nothing to the
+    prediction), then the guided pass rendered at that pose from the
+    :func:`nearest_references` of that pose (kept with at least as many inliers), and
+    ``track.refine_passes`` re-matching passes.
 
+    Args:
+      anchor: (desc [Kp, D] the anchor frame's keypoint descriptors, pid [Kp] int32 their
+        map points, -1: none (:func:`frame_points` at its pose), centre [3] its camera
+        centre).
     Returns:
-      (result, pid [Kq]): ``result`` the guided pose (``R_first``, ``t_first``,
-      ``n_inliers_first``, ``centre_std_first`` the frame pass's own; success False without
-      a guided pose); ``pid`` the frame's keypoints on map points at that pose, for the next
-      frame.
+      :class:`FrameStep`: ``result`` with ``R_first``, ``t_first``, ``n_inliers_first``,
+      ``centre_std_first`` the frame pass's own (success False without a pose); ``pid``
+      the frame's keypoints on map points at the pose kept (the next frame's anchor); the
+      guided pass's own pose.
     """
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-    return _frame_jit(m, q, f32(prev_desc), jnp.asarray(prev_pid, jnp.int32), f32(size), cfg)
+    anchor = (f32(anchor[0]), jnp.asarray(anchor[1], jnp.int32), f32(anchor[2]))
+    return _frame_jit(m, q, anchor, f32(size), cfg)
 
 
 frame_step._cache_size = _frame_jit._cache_size  # compilations so far (tests)
@@ -416,6 +455,28 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
         return True
     idx = np.asarray(st.retrieval(m, q, cfg, {})["idx"])
     return len(set(idx.tolist()) & set(np.asarray(used).tolist())) >= need
+
+
+def frame_rejection(fr: FrameStep, verdict: str, scale: float, cfg: LocalizeConfig,
+                    weakest: str | None = None) -> str | None:
+    """Why a frame pass's pose is not kept (None: kept): :func:`pose_rejection` (a
+    "localized" verdict), a guided pass that found no pose from the frame pass's, or one
+    farther from it than ``track.frame_disagreement`` / ``frame_disagreement_deg`` (the
+    frame pass inherits its anchor's error; the map rendered at its pose does not)."""
+    tc = cfg.track
+    if not bool(fr.result.success):
+        return "the frame pass found no pose"
+    reason = pose_rejection(fr.result, verdict, cfg, weakest=weakest)
+    if reason is not None:
+        return reason
+    if not bool(fr.guided_ok):
+        return "the guided pass found no pose from the frame pass's"
+    dt, dr = jump(fr.result.R_first, fr.result.t_first, fr.R_guided, fr.t_guided)
+    if tc.frame_disagreement > 0 and (dt > tc.frame_disagreement * scale
+                                      or dr > tc.frame_disagreement_deg):
+        return (f"the guided pass's pose is {dt / scale:.3f} of the scene scale and "
+                f"{dr:.1f} deg from the frame pass's")
+    return None
 
 
 def pose_rejection(r: LocalizeResult, verdict: str, cfg: LocalizeConfig,
@@ -478,7 +539,8 @@ class TrackResult:
     by_check: the pose kept is the check pass's (:func:`check_pass`; the tracking pass's
     was rejected, ``rejected`` says why), tracked all the same (no full localization);
     by_frame: the pose kept is the frame pass's (:func:`frame_step`: matched to the previous
-    good frame; the tracking step did not run);
+    good frame; the tracking step did not run); frame_rejected: why the frame pass's pose
+    was not kept (None if kept or not run: :func:`frame_rejection`);
     unconfirmed: the tracked pose passed every test but the check pass, which found no pose
     at all, and the frame's full localization was not "localized" either: the tracked pose
     is kept, its verdict "uncertain" (confidence capped below the localized threshold);
@@ -512,6 +574,7 @@ class TrackResult:
     tracked: bool = False
     by_check: bool = False
     by_frame: bool = False
+    frame_rejected: str | None = None
     unconfirmed: bool = False
     attempted: bool = False
     rejected: str | None = None
@@ -637,8 +700,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
     scale = map_scale(m)
     k = min(cfg.top_k, m.egm.num_images)
     history: list[tuple[int, np.ndarray, np.ndarray]] = []
-    prev = None  # the last frame's (descriptors [Kq, D], map point per keypoint [Kq]) if
-    # its verdict was "localized": the frame pass's anchor
+    prev = None  # the last frame's (descriptors [Kq, D], map point per keypoint [Kq], camera
+    # centre [3]) if its verdict was "localized": the frame pass's anchor
     out: list[TrackResult] = []
     bar = tqdm(range(len(frames)), desc=f"track ({cfg.source})", unit="frame",
                disable=not progress)
@@ -664,13 +727,14 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         pid = None  # the frame's keypoints on map points, from the frame pass
         size = np.array([gray.shape[1], gray.shape[0]], np.float32)
         if pred is not None and tc.frame_pass and prev is not None:
-            r, pid = jax.device_get(frame(m, q, prev[0], prev[1], size, cfg))
+            fr = jax.device_get(frame(m, q, prev, size, cfg))
+            r, pid = fr.result, fr.pid
             conf, verdict = confidence_of(r, scale, cfg)
-            # only a "localized" pose is kept and anchors the next frame: the frame pass
-            # inherits its anchor's error (keypoints paired with map points at that pose)
-            if pose_rejection(r, verdict, cfg) is None:
+            why = frame_rejection(fr, verdict, scale, cfg, weakest_of(r, scale, cfg))
+            if why is None:
                 extra.update(R_pred=pred[0], t_pred=pred[1], tracked=True, by_frame=True)
             else:
+                extra.update(frame_rejected=why)
                 pid = None
         if pred is not None and not extra.get("tracked"):
             extra.update(R_pred=pred[0], t_pred=pred[1])
@@ -696,12 +760,13 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
+        # a "localized" pose anchors the next frame's frame pass, which inherits its error
         if tc.frame_pass and res.success and res.verdict == "localized":
             if pid is None:  # the pose's keypoints on map points, at its references
                 pid = frame_points_jit(m, q, jnp.asarray(res.R, jnp.float32),
                                        jnp.asarray(res.t, jnp.float32),
                                        jnp.asarray(res.retrieved, jnp.int32), tc.associate_px)
-            prev = (q.desc, pid)
+            prev = (q.desc, pid, geometry.camera_center(res.R, res.t))
         elif tc.frame_pass:
             prev = None
         out.append(res)
