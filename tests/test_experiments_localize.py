@@ -154,6 +154,7 @@ def test_localize_sequence_tracks_the_stream(tiny_map, stream_scene, tmp_path):
     assert all(p["latency_s"] > 0 and 0 <= p["confidence"] <= 1 for p in pq)
     assert s["tracking"]["n_tracked"] == sum(p["tracked"] for p in pq)
     assert s["tracking"]["n_by_check"] == sum(p["by_check"] for p in pq)
+    assert s["tracking"]["n_by_frame"] == sum(p["by_frame"] for p in pq)
     assert s["tracking"]["descriptor_cache"] is None  # the test config keeps no stream cache
     assert s["recall"]["5cm_5deg"] >= 0.75
     assert cli.main(["--map", str(tiny_map), "--format", "7scenes", "--root",

@@ -518,7 +518,7 @@ def test_frame_pass_tracks_on_the_last_localized_frame(tiny_map, stream):
         dt, dr = _errors(r, stream, i)
         assert r.success and dt < MAX_T_M and dr < MAX_R_DEG, (i, dt, dr)
     by_frame = [i for i, r in enumerate(out) if r.by_frame]
-    assert len(by_frame) >= len(idx) - 2, [(r.tracked, r.by_frame, r.verdict) for r in out]
+    assert len(by_frame) >= len(idx) - 2, [(r.verdict, r.frame_rejected, r.rejected) for r in out]
     for i in by_frame:
         r = out[i]
         assert r.tracked and not r.by_check and r.verdict == "localized"
@@ -555,16 +555,24 @@ def test_frame_points_pair_mutual_nearest_projections(tiny_map, stream):
 
 
 def test_frame_pass_without_anchor_points_finds_no_pose(tiny_map, stream):
+    """No anchor points: no pose, rejected; the frame's own points at its true pose: a pose
+    within the render bound, kept unless the guided pass's own pose is far from it."""
     loc = _frame_loc(tiny_map)
     q = loc.prepare(stream.image_paths[1], stream.K[1])
     size = np.asarray(stream.sizes[1], np.float32)
     none = np.full(q.mask.shape, -1, np.int32)
-    r, pid = track.frame_step(loc.map, q, (q.desc, none, np.zeros(3)), size, loc.cfg)
-    assert not bool(r.success) and not np.any(np.asarray(pid) >= 0)
+    fr = track.frame_step(loc.map, q, (q.desc, none, np.zeros(3)), size, loc.cfg)
+    assert not bool(fr.result.success) and not np.any(np.asarray(fr.pid) >= 0)
+    assert "no pose" in track.frame_rejection(fr, "failed", 1.0, loc.cfg)
     # the frame's own keypoints on map points at its true pose: a pose near it
     refs = track.nearest_references(loc.map, q.K, stream.R[1], stream.t[1], size, 2, 45.0)
     anchor = track.frame_points(loc.map, q, stream.R[1], stream.t[1], refs,
                                 loc.cfg.track.associate_px)
-    r, pid = track.frame_step(loc.map, q, (q.desc, anchor, np.zeros(3)), size, loc.cfg)
-    dt, dr = _errors(r, stream, 1)
-    assert bool(r.success) and dt < MAX_T_M and dr < MAX_R_DEG and np.any(np.asarray(pid) >= 0)
+    fr = track.frame_step(loc.map, q, (q.desc, anchor, np.zeros(3)), size, loc.cfg)
+    dt, dr = _errors(fr.result, stream, 1)
+    assert bool(fr.result.success) and dt < MAX_T_M and dr < MAX_R_DEG
+    assert np.any(np.asarray(fr.pid) >= 0) and bool(fr.guided_ok)
+    # the guided pass's own pose agrees with the frame pass's: kept if "localized"
+    assert track.frame_rejection(fr, "localized", 1.0, loc.cfg) is None
+    far = fr._replace(t_guided=np.asarray(fr.t_guided) + 1.0)  # a guided pose 1 unit away
+    assert "guided pass's pose" in track.frame_rejection(far, "localized", 1.0, loc.cfg)

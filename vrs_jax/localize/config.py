@@ -149,16 +149,19 @@ class TrackConfig:
     # matched to that frame's keypoints that sat on map points (each keypoint paired with
     # the map point projected nearest it at that frame's pose, within associate_px, mutual
     # nearest), its pose solved from those points (RANSAC and refinement, no prediction)
-    # and the guided pass rendered at that pose, as a SLAM tracker follows the last frame's
-    # map points: nothing is rendered from the references' cameras. Kept when its verdict
-    # is "localized" (and min_inliers); else the tracking step above runs as without it.
-    # Off: on the walk's held-out leg (render mode, benchmarks.track, README "Tracking
-    # against the previous frame") a frame-pass frame costs 0.12-0.16 s against 0.2-0.6 s,
-    # but its pose inherits the anchor's error (the leg's frames are 2-17% of the scale
-    # apart and the confidence calls poses 3-6% off "localized"): 22 / 34% within 1% / 2%
-    # at 0.313 s per frame against 22 / 30% at 0.326 s, with 1 wrong pose localized against
-    # 0; kept on "uncertain" verdicts too, 10 / 18% at 0.213 s with 6. associate_px 1
-    # instead of 2: 22 / 32%, the same poses within 0.1%.
+    # and the guided pass rendered at that pose (kept with as many inliers), as a SLAM
+    # tracker follows the last frame's map points: nothing is rendered from the references'
+    # cameras. Kept when its verdict is "localized" (and min_inliers) and the guided pass's
+    # own pose lies within frame_disagreement of the scene scale and frame_disagreement_deg
+    # of the frame pass's (the frame pass inherits its anchor's error; the map rendered at
+    # its pose does not); else the tracking step above runs as without it. cpu-small: on.
+    # Render mode, benchmarks.track on 23df8bb (README "Tracking against the previous
+    # frame"): the walk's held-out leg 20 / 34% within 1% / 2% at 0.252 s per frame (full
+    # localization in the same run 20 / 36% at 0.646 s; off, 22 / 30% at 0.368 s), no wrong
+    # pose localized, the jump tracked after 1 frame and right after 2; fox 100% at 0.184 s
+    # (full 0.322 s; off 0.447 s). Variants (one run each): anchoring on "uncertain" frames
+    # too 20 / 36% at 0.238-0.274 s with 1 wrong pose localized (5.1% off); keeping uncertain
+    # frame-pass poses as well, 10 / 18% with 6; associate_px 1: the same poses within 0.1%.
     frame_pass: bool = False
     associate_px: float = 2.0
     frame_disagreement: float = 0.05
@@ -425,6 +428,10 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # recovered in 2 frames instead of 4; fox's 10 far-apart frames 90 / 100% -> 100 / 100%
     # (0.281 s, full 0.258 s). Without the early exit when rendering a missing reference:
     # leg 24 / 40% at 0.444 s, fox 100% at 0.807 s.
+    # A frame after a "localized" one is first matched to that frame's keypoints on map
+    # points (track.frame_pass, its comment): the leg 20 / 34% at 0.252 s per frame (full
+    # localization 20 / 36% at 0.646 s in the same run; without it 22 / 30% at 0.368 s),
+    # fox 100% at 0.184 s (0.447 s without), on 23df8bb.
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
@@ -442,7 +449,8 @@ CONFIGS: dict[str, LocalizeConfig] = {
                                 render_grid=8, early_exit_inliers=24, render_chunk=2048,
                                 retries=1, track=TrackConfig(min_retrieval_overlap=2,
                                                              keypoints=160, cache_mb=64,
-                                                             reference_views=True)),
+                                                             reference_views=True,
+                                                             frame_pass=True)),
     # Unit tests: top-2 retrieval, 256 query keypoints, 8 + 4 depth-guided samples per ray,
     # no guided pass (tests ask for one where they check it).
     "test": LocalizeConfig(top_k=2, query_keypoints=256, narrow_samples=8, narrow_fine=4,

@@ -356,15 +356,22 @@ def frame_seed(q: Query, cfg: LocalizeConfig, X: Array, ok: Array, centre: Array
     """The frame pass's own pose as a result (``pose`` a PoseResult from the matches ok
     [Kq] of the query keypoints to an anchor frame's map points X [Kq, 3]), with its inlier
     geometry (the anchor's camera ``centre`` [3] as the reference of every correspondence)
-    and centre uncertainty; ``idx`` [k] the references it reports."""
+    and centre uncertainty; ``idx`` [k] the references it reports. ``n_inliers_first`` is
+    at most the guided pass's render budget (``guided_keypoints``, render mode): the
+    confidence compares the guided pass's inliers with it, and that pass can confirm no
+    more points than it renders (the first pass of a full localization has about as many
+    inliers as the budget; a frame pass on a close frame can have several times more)."""
     centres = jnp.broadcast_to(centre, X.shape)
     cov, ang, spread = st.inlier_geometry(q.points2d, q.mask, cfg.coverage_grid, pose.R,
                                           pose.t, X, centres, pose.inliers)
     std = st.centre_uncertainty(q.points2d, q.K, pose.R, pose.t, X, pose.inliers,
                                 cfg.confidence.focal_std)
+    n_first = pose.n_inliers
+    if cfg.source == "render" and cfg.guided_render and cfg.guided_keypoints > 0:
+        n_first = jnp.minimum(n_first, cfg.guided_keypoints)
     return start_result(q, idx, pose.R, pose.t).replace(
         success=pose.success, fallback=~pose.success, n_inliers=pose.n_inliers,
-        n_matches=jnp.sum(ok).astype(jnp.int32), n_inliers_first=pose.n_inliers,
+        n_matches=jnp.sum(ok).astype(jnp.int32), n_inliers_first=n_first,
         inlier_coverage=cov, inlier_ray_angle_deg=ang, inlier_depth_spread=spread,
         inlier_centre_std=std, centre_std_first=std)
 
@@ -403,7 +410,7 @@ def _frame_step(m: Map, q: Query, anchor: tuple[Array, Array, Array], size: Arra
                                                      seed.replace(n_inliers=jnp.int32(0)))
     g_ok = jnp.any(inl)
     res = jax.tree.map(lambda a, b: jnp.where(g_ok & (g.n_inliers >= seed.n_inliers), a, b),
-                       g.replace(n_inliers_first=seed.n_inliers), seed.replace(
+                       g.replace(n_inliers_first=seed.n_inliers_first), seed.replace(
                            n_inliers_guided=g.n_inliers_guided,
                            n_rendered=g.n_rendered))
     for _ in range(cfg.track.refine_passes):
