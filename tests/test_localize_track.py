@@ -522,7 +522,7 @@ def test_frame_pass_tracks_on_the_last_localized_frame(tiny_map, stream):
     for i in by_frame:
         r = out[i]
         assert r.tracked and not r.by_check and r.verdict == "localized"
-        assert out[i - 1].verdict == "localized"
+        assert out[i - 1].verdict == "localized" and not out[i - 1].relocalized
         assert 0 < int(r.n_rendered) <= loc.cfg.guided_keypoints  # its guided pass only
         assert r.n_inliers >= loc.cfg.track.min_inliers and r.n_inliers_first > 0
 

@@ -259,7 +259,8 @@ def localize_into(out: Path, args, argv: list[str] | None, t_start: float
             pq.update(tracked=tr.tracked, by_check=tr.by_check, by_frame=tr.by_frame,
                       unconfirmed=tr.unconfirmed,
                       relocalized=tr.relocalized,
-                      latency_s=round(tr.latency_s, 4), rejected=tr.rejected)
+                      latency_s=round(tr.latency_s, 4), rejected=tr.rejected,
+                      frame_rejected=tr.frame_rejected)
         summary["tracking"] = {**tracking_counts(tracks),
                                "descriptor_cache": info.get("stream_cache")}
     fileio.write_json(out / "summary.json", metrics.json_ready(summary))

@@ -145,7 +145,8 @@ class TrackConfig:
     # then the first pass of a full localization on those references. cpu-small: on (its
     # comment).
     reference_views: bool = False
-    # The frame pass: when the previous frame's verdict was "localized", the frame is first
+    # The frame pass: when the previous frame's verdict was "localized" (and it was not
+    # relocalized: a pose the stream's tracking did not confirm), the frame is first
     # matched to that frame's keypoints that sat on map points (each keypoint paired with
     # the map point projected nearest it at that frame's pose, within associate_px, mutual
     # nearest), its pose solved from those points (RANSAC and refinement, no prediction)

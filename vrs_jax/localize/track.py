@@ -465,7 +465,7 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
 
 
 def frame_rejection(fr: FrameStep, verdict: str, scale: float, cfg: LocalizeConfig,
-                    weakest: str | None = None) -> str | None:
+                    weakest: str | None = None, agrees: bool = True) -> str | None:
     """Why a frame pass's pose is not kept (None: kept): :func:`pose_rejection` (a
     "localized" verdict), a guided pass that found no pose from the frame pass's, or one
     farther from it than ``track.frame_disagreement`` / ``frame_disagreement_deg`` (the
@@ -473,7 +473,7 @@ def frame_rejection(fr: FrameStep, verdict: str, scale: float, cfg: LocalizeConf
     tc = cfg.track
     if not bool(fr.result.success):
         return "the frame pass found no pose"
-    reason = pose_rejection(fr.result, verdict, cfg, weakest=weakest)
+    reason = pose_rejection(fr.result, verdict, cfg, agrees, weakest)
     if reason is not None:
         return reason
     if not bool(fr.guided_ok):
@@ -767,8 +767,10 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
-        # a "localized" pose anchors the next frame's frame pass, which inherits its error
-        if tc.frame_pass and res.success and res.verdict == "localized":
+        # a "localized" pose anchors the next frame's frame pass, which inherits its error:
+        # not a relocalized one (its tracking was rejected; the stream did not confirm it)
+        if (tc.frame_pass and res.success and res.verdict == "localized"
+                and not res.relocalized):
             if pid is None:  # the pose's keypoints on map points, at its references
                 pid = frame_points_jit(m, q, jnp.asarray(res.R, jnp.float32),
                                        jnp.asarray(res.t, jnp.float32),
