@@ -156,13 +156,13 @@ class TrackConfig:
     # own pose lies within frame_disagreement of the scene scale and frame_disagreement_deg
     # of the frame pass's (the frame pass inherits its anchor's error; the map rendered at
     # its pose does not); else the tracking step above runs as without it. cpu-small: on.
-    # Render mode, benchmarks.track on 23df8bb (README "Tracking against the previous
-    # frame"): the walk's held-out leg 20 / 34% within 1% / 2% at 0.252 s per frame (full
-    # localization in the same run 20 / 36% at 0.646 s; off, 22 / 30% at 0.368 s), no wrong
-    # pose localized, the jump tracked after 1 frame and right after 2; fox 100% at 0.184 s
-    # (full 0.322 s; off 0.447 s). Variants (one run each): anchoring on "uncertain" frames
-    # too 20 / 36% at 0.238-0.274 s with 1 wrong pose localized (5.1% off); keeping uncertain
-    # frame-pass poses as well, 10 / 18% with 6; associate_px 1: the same poses within 0.1%.
+    # Render mode, benchmarks.track on 535beb8 (README "Tracking against the previous
+    # frame"): the walk's held-out leg 20 / 34% within 1% / 2% at 0.308 s per frame (full
+    # localization in the same run 20 / 36% at 0.751 s; without it, on 23df8bb, 22 / 30%
+    # at 0.368 s), no wrong pose localized, the jump tracked after 1 frame and right after 2;
+    # fox 100% at 0.231 s (full 0.307 s; without it 0.447 s). Variants (one run each):
+    # anchoring on "uncertain" frames too, 20 / 36% at 0.238-0.274 s with 1 wrong pose
+    # localized (5.1% off); keeping uncertain frame-pass poses as well, 10 / 18% with 6.
     frame_pass: bool = False
     associate_px: float = 2.0
     frame_disagreement: float = 0.05
@@ -430,9 +430,9 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # (0.281 s, full 0.258 s). Without the early exit when rendering a missing reference:
     # leg 24 / 40% at 0.444 s, fox 100% at 0.807 s.
     # A frame after a "localized" one is first matched to that frame's keypoints on map
-    # points (track.frame_pass, its comment): the leg 20 / 34% at 0.252 s per frame (full
-    # localization 20 / 36% at 0.646 s in the same run; without it 22 / 30% at 0.368 s),
-    # fox 100% at 0.184 s (0.447 s without), on 23df8bb.
+    # points (track.frame_pass, its comment): the leg 20 / 34% at 0.308 s per frame (full
+    # localization 20 / 36% at 0.751 s in the same run, on 535beb8; without it 22 / 30% at
+    # 0.368 s on 23df8bb), fox 100% at 0.231 s (0.447 s without).
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
