@@ -3,10 +3,11 @@
 A robot's frames arrive in order, each close to the last. With the previous poses as a prior,
 a frame needs only the guided pass, started from a predicted pose instead of a first pass's:
 
-    frame pass  (``track.frame_pass``) the frame matched to the previous good frame's
-                keypoints that sit on map points, RANSAC and refinement on those points, the
-                guided pass rendered at that pose (:func:`frame_step`); kept on the tests a
-                check pass's pose passes (:func:`pose_rejection`), else the steps below
+    frame pass  (``track.frame_pass``) after a "localized" frame that was not relocalized:
+                the frame matched to that frame's keypoints that sit on map points, RANSAC
+                and refinement on those points, the guided pass rendered at that pose
+                (:func:`frame_step`); kept when "localized" and the guided pass's own pose
+                agrees with it (:func:`frame_rejection`), else the steps below
     predict     constant velocity: the relative motion of the last two good poses applied
                 once more (scaled to the frame gap on SE(3)); one good pose: that pose
     references  the k reference images with the most map points in view of the predicted
@@ -465,15 +466,16 @@ def appearance_agrees(m: Map, q: Query, used: np.ndarray, cfg: LocalizeConfig) -
 
 
 def frame_rejection(fr: FrameStep, verdict: str, scale: float, cfg: LocalizeConfig,
-                    weakest: str | None = None, agrees: bool = True) -> str | None:
-    """Why a frame pass's pose is not kept (None: kept): :func:`pose_rejection` (a
-    "localized" verdict), a guided pass that found no pose from the frame pass's, or one
-    farther from it than ``track.frame_disagreement`` / ``frame_disagreement_deg`` (the
-    frame pass inherits its anchor's error; the map rendered at its pose does not)."""
+                    weakest: str | None = None) -> str | None:
+    """Why a frame pass's pose is not kept (None: kept): no pose, :func:`pose_rejection`
+    (a "localized" verdict, ``weakest`` naming its lowest test otherwise; min_inliers), a
+    guided pass that found no pose from the frame pass's, or one farther from it than
+    ``track.frame_disagreement`` / ``frame_disagreement_deg`` (the frame pass inherits its
+    anchor's error; the map rendered at its pose does not)."""
     tc = cfg.track
     if not bool(fr.result.success):
         return "the frame pass found no pose"
-    reason = pose_rejection(fr.result, verdict, cfg, agrees, weakest)
+    reason = pose_rejection(fr.result, verdict, cfg, weakest=weakest)
     if reason is not None:
         return reason
     if not bool(fr.guided_ok):
@@ -708,7 +710,8 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
     k = min(cfg.top_k, m.egm.num_images)
     history: list[tuple[int, np.ndarray, np.ndarray]] = []
     prev = None  # the last frame's (descriptors [Kq, D], map point per keypoint [Kq], camera
-    # centre [3]) if its verdict was "localized": the frame pass's anchor
+    # centre [3]) if its verdict was "localized" and it was not relocalized: the frame
+    # pass's anchor
     out: list[TrackResult] = []
     bar = tqdm(range(len(frames)), desc=f"track ({cfg.source})", unit="frame",
                disable=not progress)
