@@ -576,3 +576,32 @@ def test_frame_pass_without_anchor_points_finds_no_pose(tiny_map, stream):
     assert track.frame_rejection(fr, "localized", 1.0, loc.cfg) is None
     far = fr._replace(t_guided=np.asarray(fr.t_guided) + 1.0)  # a guided pose 1 unit away
     assert "guided pass's pose" in track.frame_rejection(far, "localized", 1.0, loc.cfg)
+
+
+def test_a_frames_renders_count_every_attempt(tiny_map, stream):
+    """n_rendered of a frame counts the patches of every attempt: a rejected frame pass and
+    a rejected tracking step before the full localization that gives the pose."""
+    loc = _frame_loc(tiny_map)
+    done = []
+
+    def full(q):
+        done.append(loc.localize_query(q))
+        return done[-1]
+
+    def failed(q, n):
+        r = track.start_result(q, np.zeros(2, np.int32), np.eye(3), np.zeros(3))
+        return r.replace(success=np.bool_(False), n_rendered=np.int32(n))
+
+    def frame(m, q, anchor, size, cfg):
+        return track.FrameStep(failed(q, 7), np.full(q.mask.shape, -1, np.int32), np.eye(3),
+                               np.zeros(3), np.bool_(False))
+
+    def step(m, q, R, t, size, cfg, views=None):
+        return track.TrackStep(failed(q, 5), failed(q, 11))  # check: the step's total
+
+    out = track.track_frames(loc.map, loc.cfg, [stream.image_paths[i] for i in (0, 1)],
+                             stream.K[0], None, loc.prepare, full, step=step, frame=frame)
+    assert out[0].verdict == "localized" and not out[0].attempted  # the anchor
+    assert out[1].frame_rejected and not out[1].tracked and len(done) == 2
+    assert int(out[1].n_rendered) == 7 + 11 + int(done[1].n_rendered)
+    assert int(out[0].n_rendered) == int(done[0].n_rendered)

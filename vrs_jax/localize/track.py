@@ -555,8 +555,10 @@ class TrackResult:
     is kept, its verdict "uncertain" (confidence capped below the localized threshold);
     confidence, verdict: the pose confidence (localize.confidence) of the pose returned;
     latency_s: wall seconds of the frame (reading, preparation, tracking and any full
-    localization); R_pred, t_pred: the prediction (None without one); error: why the frame
-    has no result (unreadable, blank), else None.
+    localization); n_rendered: every patch rendered for the frame, by the attempts not kept
+    too (a rejected frame pass or tracking step before a full localization); R_pred,
+    t_pred: the prediction (None without one); error: why the frame has no result
+    (unreadable, blank), else None.
     """
 
     name: str
@@ -736,9 +738,11 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
         extra: dict[str, Any] = {"attempted": pred is not None}
         pid = None  # the frame's keypoints on map points, from the frame pass
         size = np.array([gray.shape[1], gray.shape[0]], np.float32)
+        rendered = 0  # patches rendered for the frame, by every attempt (kept or not)
         if pred is not None and tc.frame_pass and prev is not None:
             fr = jax.device_get(frame(m, q, prev, size, cfg))
             r, pid = fr.result, fr.pid
+            rendered += int(r.n_rendered)
             conf, verdict = confidence_of(r, scale, cfg)
             why = frame_rejection(fr, verdict, scale, cfg, weakest_of(r, scale, cfg))
             if why is None:
@@ -755,11 +759,13 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
             if own is not None:  # the references' patches rendered for this frame (misses)
                 out_step = TrackStep(*(r.replace(n_rendered=r.n_rendered + own[3])
                                        for r in out_step))
+            rendered += int(out_step.check.n_rendered)  # the step's own (check: its total)
             r, conf, verdict, kept = accepted(m, q, cfg, out_step, pred, scale)
             extra.update(kept)
         if not extra.get("tracked"):
             tracked = (r, conf) if extra.get("unconfirmed") else None
             r = jax.device_get(full(q))
+            rendered += int(r.n_rendered)
             conf, verdict = confidence_of(r, scale, cfg)
             if tracked is not None and verdict != "localized":
                 # the full localization did no better: the unconfirmed tracked pose, uncertain
@@ -767,6 +773,7 @@ def track_frames(m: Map, cfg: LocalizeConfig, frames: Sequence[Any], K: Any, dis
                 extra.update(tracked=True)
             else:
                 extra.update(unconfirmed=False)
+        r = r.replace(n_rendered=rendered)
         res = as_track_result(name, r, confidence=conf, verdict=verdict,
                               latency_s=time.perf_counter() - t0, **extra)
         history = updated_history(history, i, res, scale, cfg)
