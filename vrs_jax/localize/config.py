@@ -156,11 +156,12 @@ class TrackConfig:
     # own pose lies within frame_disagreement of the scene scale and frame_disagreement_deg
     # of the frame pass's (the frame pass inherits its anchor's error; the map rendered at
     # its pose does not); else the tracking step above runs as without it. cpu-small: on.
-    # Render mode, benchmarks.track on 535beb8 (README "Tracking against the previous
-    # frame"): the walk's held-out leg 20 / 34% within 1% / 2% at 0.308 s per frame (full
-    # localization in the same run 20 / 36% at 0.751 s; without it, on 23df8bb, 22 / 30%
-    # at 0.368 s), no wrong pose localized, the jump tracked after 1 frame and right after 2;
-    # fox 100% at 0.231 s (full 0.307 s; without it 0.447 s). Variants (one run each):
+    # Render mode, benchmarks.track on 4c0efca and 535beb8 (README "Tracking against the
+    # previous frame"): the walk's held-out leg 20 / 34% within 1% / 2% at 0.220 and 0.308 s
+    # per frame (full localization in the same runs 20 / 36% at 0.779 and 0.751 s; without
+    # it, on 23df8bb, 22 / 30% at 0.368 s), no wrong pose localized, the jump tracked after
+    # 1 frame and right after 2; fox 100% at 0.146 and 0.231 s (full 0.199 and 0.307 s;
+    # without it 0.447 s). Variants (one run each):
     # anchoring on "uncertain" frames too, 20 / 36% at 0.238-0.274 s with 1 wrong pose
     # localized (5.1% off); keeping uncertain frame-pass poses as well, 10 / 18% with 6.
     frame_pass: bool = False
@@ -430,9 +431,10 @@ CONFIGS: dict[str, LocalizeConfig] = {
     # (0.281 s, full 0.258 s). Without the early exit when rendering a missing reference:
     # leg 24 / 40% at 0.444 s, fox 100% at 0.807 s.
     # A frame after a "localized" one is first matched to that frame's keypoints on map
-    # points (track.frame_pass, its comment): the leg 20 / 34% at 0.308 s per frame (full
-    # localization 20 / 36% at 0.751 s in the same run, on 535beb8; without it 22 / 30% at
-    # 0.368 s on 23df8bb), fox 100% at 0.231 s (0.447 s without).
+    # points (track.frame_pass, its comment): the leg 20 / 34% at 0.220-0.308 s per frame
+    # (full localization 20 / 36% at 0.779 and 0.751 s in the same two runs, 4c0efca and
+    # 535beb8; without it 22 / 30% at 0.368 s on 23df8bb), fox 100% at 0.146-0.231 s (0.447 s
+    # without).
     # A query that is not "localized" is retried once with the next 5 references
     # (retries=1; benchmarks.localize on the six scenes' rebuilt maps, README "Retrying a
     # doubtful query"): render mode gains the walk one query within 1% and one within 2%
