@@ -442,7 +442,8 @@ def test_a_streams_full_localizations_share_a_descriptor_cache(tiny_map, stream)
     assert loc.cache is None and not any(r.tracked for r in out)
     k = len(np.asarray(out[0].retrieved))
     assert loc.stream_cache_stats["misses"] == k and loc.stream_cache_stats["hits"] == k
-    assert int(out[1].n_rendered) < int(out[0].n_rendered)
+    # the same rejected tracking step in both runs; the cached full localization renders less
+    assert int(out[1].n_rendered) < int(plain[1].n_rendered)
     for a, b in zip(plain, out, strict=True):
         assert bool(a.success) == bool(b.success)
         np.testing.assert_allclose(np.asarray(b.t), np.asarray(a.t), atol=5e-3)
