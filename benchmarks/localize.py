@@ -20,6 +20,11 @@ warm-up query compiles first), rays and NeRF evaluations per query, and map byte
 is measured afresh and recorded in WORK/runs/ (the ablation and figures reuse those
 records). ``--repeat N`` runs the render and real rows N times, the modes in turn, and reports
 each stage's median time over the runs: on a shared machine one run's times move 15-30%.
+``--seeds N`` localizes the render and real rows again with N - 1 other seeds of the RANSAC
+seed's random sampling (``PnPConfig.seed``: 0 is the configs', then 1, 2, ...) and reports,
+beside the seed-0 row, each recall's range and mean over the seeds: on the phone walk one
+seed's render recall within 1% / 1 deg differs from another's by up to 13 points with
+nothing else changed, so a difference between two configurations counts only beyond that.
 """
 
 from __future__ import annotations
@@ -64,6 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "and the row says whether every run gave the same poses). Times on a "
                         "shared or throttled machine move 15-30%% between runs: a ratio of "
                         "modes is only as good as N")
+    p.add_argument("--seeds", type=int, default=1, metavar="N",
+                   help="localize every render/real row with N RANSAC seeds (the configs' "
+                        "seed 0, then 1 .. N-1; accuracy only, nothing else changes) and "
+                        "print each recall's range and mean over them beside the seed-0 "
+                        "rows (each seed's per-query errors stay in the JSON)")
     p.add_argument("--json", default=None,
                    help=f"output JSON (default {common.DEFAULT_JSON_DIR}/localize.json)")
     common.add_overwrite_arg(p)
@@ -183,6 +193,52 @@ def mode_cfg(ctx: common.SceneCtx, mode: str, args, overrides: dict):
     return common.localize_cfg(ctx, "render" if mode == "render-full" else mode, **over)
 
 
+def with_seed(cfg, seed: int):
+    """``cfg`` (a LocalizeConfig) with its RANSAC seed's generator seeded by ``seed``."""
+    return dataclasses.replace(cfg, pnp=dataclasses.replace(cfg.pnp, seed=seed))
+
+
+SEED_KEYS = ("1pct_1deg", "2pct_2deg", "5pct_5deg")
+
+
+def seed_spread(per_seed: list[dict], scale: float) -> dict:
+    """Accuracy of one row over RANSAC seeds. per_seed: a summary (``per_query``'s t_err_m,
+    R_err_deg) per seed, seed 0 first. Returns ``n``, ``recall_relative`` {key: [per seed]},
+    ``median_t_rel`` [per seed], and per key its ``min``, ``max`` and ``mean``."""
+    rel = [relative(s, scale) for s in per_seed]
+    rec = {k: [r["recall_relative"][k] for r in rel] for k in SEED_KEYS}
+    return {"n": len(per_seed), "recall_relative": rec,
+            "median_t_rel": [r["median_t_rel"] for r in rel],
+            "min": {k: float(min(v)) for k, v in rec.items()},
+            "max": {k: float(max(v)) for k, v in rec.items()},
+            "mean": {k: float(np.mean(v)) for k, v in rec.items()},
+            "per_query": [{"t_err_m": s["per_query"]["t_err_m"],
+                           "R_err_deg": s["per_query"]["R_err_deg"]} for s in per_seed]}
+
+
+def seeds_table(rows: list[dict]) -> str:
+    """Recall over RANSAC seeds: per row with ``seeds``, each threshold's seed-0 value, its
+    min-max and mean over the seeds, and the median error's range."""
+    pct = common.pct
+
+    def cell(sp, k):
+        return (f"{pct(sp['recall_relative'][k][0])} ({pct(sp['min'][k])}-"
+                f"{pct(sp['max'][k])}, mean {pct(sp['mean'][k])})")
+
+    def med(sp):
+        v = [100 * x for x in sp["median_t_rel"] if x is not None]
+        return f"{common.fmt(min(v))}-{common.fmt(max(v))}" if v else "-"
+
+    return common.table(
+        ["scene / mode", "seeds", "1%/1deg: seed 0 (min-max, mean)", "2%/2deg", "5%/5deg",
+         "median % scale (min-max)"],
+        [[f"{r['scene']} / {r['mode']}", r["seeds"]["n"],
+          *(cell(r["seeds"], k) for k in SEED_KEYS), med(r["seeds"])]
+         for r in rows if "seeds" in r],
+        title="Recall over RANSAC seeds (PnPConfig.seed 0 .. N-1, nothing else changed): a "
+              "difference between configurations inside these ranges is not evidence")
+
+
 def repeated(summaries: list[dict]) -> dict:
     """One summary of N runs of the same config: the first run's accuracy and counts, each
     stage's median time over the runs (and ``localize_s_per_query``, their sum, as one run
@@ -209,10 +265,11 @@ def repeated(summaries: list[dict]) -> dict:
 @cli_main
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.repeat < 1:
+    if args.repeat < 1 or args.seeds < 1:
         from vrs_jax.errors import VrsError
 
-        raise VrsError(f"--repeat must be >= 1, got {args.repeat}")
+        raise VrsError(f"--repeat and --seeds must be >= 1, got {args.repeat} and "
+                       f"{args.seeds}")
     common.check_outputs(args, [common.json_path(args, "localize")])
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if not modes or any(m not in MODES for m in modes):
@@ -235,6 +292,11 @@ def main(argv: list[str] | None = None) -> int:
             for mode, cfg in cfgs.items():
                 runs[mode].append(common.localize_run(ctx, cfg, args.work, fresh=True,
                                                       progress=not args.quiet))
+        others: dict[str, list[dict]] = {mode: [] for mode in cfgs}
+        for seed in range(1, args.seeds):  # accuracy only: the seed-0 runs keep the times
+            for mode, cfg in cfgs.items():
+                others[mode].append(common.localize_run(ctx, with_seed(cfg, seed), args.work,
+                                                        fresh=True, progress=not args.quiet))
         for mode in modes:
             if mode == "sift":
                 rows.append(sift_row(ctx, args, scale))
@@ -251,11 +313,16 @@ def main(argv: list[str] | None = None) -> int:
                 row["localize_config"] = dataclasses.asdict(cfgs[mode])
                 if args.repeat > 1:
                     row["repeats"] = summary["repeats"]
+                if args.seeds > 1:
+                    row["seeds"] = seed_spread([pick(r) for r in [s, *others[mode]]], scale)
                 rows.append(row)
     print()
     print(accuracy_table(rows))
     print()
     print(latency_table(rows))
+    if args.seeds > 1:
+        print()
+        print(seeds_table(rows))
     if args.repeat > 1:
         differ = [f"{r['scene']} / {r['mode']}" for r in rows
                   if "repeats" in r and not r["repeats"]["same_poses"]]

@@ -141,6 +141,43 @@ def test_repeated_runs_report_the_median_time_of_each_stage(base, tmp_path, caps
                                  str(tmp_path / "x.json")]) == 2
 
 
+def test_seed_spread_over_hand_made_errors():
+    """The recall of each seed, its range and mean, computed by hand: scale 2 m, so 1% is
+    2 cm; seed 0 gets one of two queries within 1% / 1 deg, seed 1 both, seed 2 none (a
+    failure reads inf / 180 deg)."""
+    inf = float("inf")
+    runs = [{"per_query": {"t_err_m": t, "R_err_deg": r}} for t, r in (
+        ([0.01, 0.03], [0.5, 0.5]), ([0.01, 0.019], [0.5, 0.9]), ([inf, 0.05], [180.0, 1.5]))]
+    sp = localize.seed_spread(runs, 2.0)
+    assert sp["n"] == 3
+    assert sp["recall_relative"]["1pct_1deg"] == [0.5, 1.0, 0.0]
+    assert sp["recall_relative"]["2pct_2deg"] == [1.0, 1.0, 0.0]
+    assert (sp["min"]["1pct_1deg"], sp["max"]["1pct_1deg"]) == (0.0, 1.0)
+    assert sp["mean"]["1pct_1deg"] == pytest.approx(0.5)
+    assert sp["median_t_rel"][:2] == pytest.approx([0.01, 0.00725])
+    cfg = localize.with_seed(__import__("vrs_jax").localize.get_config("cpu-small"), 7)
+    assert cfg.pnp.seed == 7 and cfg.pnp.threshold_px == 6.0
+
+
+def test_seeds_rerun_the_rows_with_other_ransac_seeds(base, tmp_path, capsys):
+    """--seeds 2: each row keeps its seed-0 accuracy and carries both seeds' recall, the
+    first equal to the row's own; the table is printed; --seeds 0 is refused."""
+    out = tmp_path / "seeds.json"
+    assert localize.main(base + ["--scenes", "synthetic", "--modes", "real", "--seeds", "2",
+                                 "--json", str(out)]) == 0
+    assert "Recall over RANSAC seeds" in capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    for r in doc["rows"]:
+        sp = r["seeds"]
+        assert sp["n"] == 2 and len(sp["per_query"]) == 2
+        assert sp["per_query"][0]["t_err_m"] == r["per_query"]["t_err_m"]
+        for k in localize.SEED_KEYS:
+            assert sp["recall_relative"][k][0] == r["recall_relative"][k]
+            assert sp["min"][k] <= sp["mean"][k] <= sp["max"][k]
+    assert localize.main(base + ["--scenes", "synthetic", "--seeds", "0", "--json",
+                                 str(tmp_path / "x.json")]) == 2
+
+
 def test_ablation_reuses_the_localize_runs(base, localize_doc, tmp_path):
     # (other patch sizes run the same code path as the localize benchmark's fresh runs; the
     # render benchmark test covers a P other than the map's)
