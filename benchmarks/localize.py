@@ -33,6 +33,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from benchmarks import common
@@ -297,6 +298,10 @@ def main(argv: list[str] | None = None) -> int:
             for mode, cfg in cfgs.items():
                 others[mode].append(common.localize_run(ctx, with_seed(cfg, seed), args.work,
                                                         fresh=True, progress=not args.quiet))
+                # each seed is another static config, compiled anew: without this the
+                # executables of six scenes x two modes x three seeds outgrew the process's
+                # memory maps (vm.max_map_count) and XLA aborted mid-run
+                jax.clear_caches()
         for mode in modes:
             if mode == "sift":
                 rows.append(sift_row(ctx, args, scale))
