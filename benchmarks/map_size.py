@@ -6,10 +6,11 @@ way the field stores them, on the same scenes; with --series, measured along a s
 The VRS map is what render-mode localization loads: ``map.json`` + ``egm.npz`` (3D points,
 keypoints and their point links, poses and intrinsics, global descriptors with the
 vocabulary; quantised, see :mod:`vrs_jax.egm.map`) + ``ilm.npz`` (the NeRF weights,
-float16). A descriptor map (the hierarchical method) is the same EGM plus one local
-descriptor per kept keypoint and no NeRF; it is reported with 128-D descriptors at one byte
-per dimension (COLMAP stores SIFT as uint8), at float16 (hloc stores its features so; this is
-our real-patch map's descriptors.npz) and at float32.
+float16; the hash tables int8, one scale per level). A descriptor map (the hierarchical
+method) is the same EGM plus one local descriptor per kept keypoint and no NeRF; it is
+reported with 128-D descriptors at one byte per dimension (COLMAP stores SIFT as uint8), at
+float16 (hloc stores its features so; this is our real-patch map's descriptors.npz) and at
+float32.
 
 ``--series ROOMS`` measures instead the scale series (:mod:`benchmarks.map_scale`): the
 synthetic scene with 1, 4, 16, 64 rooms (hundreds to a thousand images) and the phone walk,
@@ -33,6 +34,7 @@ from vrs_jax import maps
 from vrs_jax.errors import cli_main
 from vrs_jax.maps import map as map_io
 from vrs_jax.nerf import config as nerf_config
+from vrs_jax.nerf import ilm as ilm_lib
 from vrs_jax.nerf.model import count_params, init_params
 
 # The paper's table (chess): SFD2+IMP 4.0 GB, VRS-NeRF 1.0 GB.
@@ -76,14 +78,15 @@ def descriptor_maps(b: dict[str, Any], n_kp: int, dim: int) -> dict[str, int]:
 
 
 def nerf_weight_bytes() -> list[dict]:
-    """Parameters and stored bytes of one cluster's field for every named NeRF config (float16
-    when the map stores its weights so, :data:`vrs_jax.maps.map.NERF_FLOAT16`)."""
-    per = 2 if map_io.NERF_FLOAT16 else 4
+    """Parameters and stored bytes of one cluster's field for every named NeRF config, as a
+    map stores them (float16 weights, int8 hash tables: :data:`vrs_jax.maps.map.NERF_FLOAT16`,
+    :data:`~vrs_jax.maps.map.NERF_HASH_INT8`)."""
     out = []
     for name, cfg in nerf_config.CONFIGS.items():
         shapes = jax.eval_shape(lambda cfg=cfg: init_params(jax.random.key(0), cfg))
         n = count_params(shapes)
-        out.append({"config": name, "params": int(n), "bytes_per_cluster": int(per * n)})
+        stored = ilm_lib.stored_param_bytes(cfg, map_io.NERF_FLOAT16, map_io.NERF_HASH_INT8)
+        out.append({"config": name, "params": int(n), "bytes_per_cluster": stored})
     return out
 
 
@@ -120,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
                        [[r["config"], common.fmt(r["params"]), mb(r["bytes_per_cluster"])]
                         for r in nerf],
                        title="NeRF weights per cluster by config (as stored: "
-                             f"{'float16' if map_io.NERF_FLOAT16 else 'float32'})"))
+                             f"{'float16' if map_io.NERF_FLOAT16 else 'float32'}"
+                             f"{', hash tables int8' if map_io.NERF_HASH_INT8 else ''})"))
     for s in skipped:
         print(f"skipped {s['scene']}: {s['reason']}")
     print("\nlarge scenes: measured along a scale series by --series (benchmarks.map_scale)")

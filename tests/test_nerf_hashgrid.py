@@ -272,3 +272,94 @@ def test_unknown_encoding_is_an_error():
     with pytest.raises(VrsError, match="unknown NeRF encoding"):
         get_config("test", encoding="fourier")
     assert math.isclose(get_config("cpu-small").hash_init_scale, 1e-4)
+
+
+def _hash_ilm(seed=0):
+    """A two-cluster hash-grid ILM whose tables hold trained-like values (N(0, 0.5), one
+    level left all zero, as a level no sample reached keeps its tiny init)."""
+    params = _init(HG, 2)
+    t = np.asarray(params[HASH_TABLE])  # [C, L, T, F]
+    v = np.random.default_rng(seed).normal(0.0, 0.5, t.shape).astype(np.float32)
+    v[1, 3] = 0.0
+    params = {**params, HASH_TABLE: jnp.asarray(v)}
+    fields = Field(params, jnp.zeros((2, 3)), jnp.ones(2), jnp.ones((2, 3)))
+    return ilm_lib.ILM(fields=fields, cluster_centers=jnp.zeros((2, 3)),
+                       image_cluster=jnp.asarray([0, 1], jnp.int32),
+                       membership=jnp.ones((2, 2), bool), near=jnp.ones(2),
+                       far=jnp.full(2, 3.0), image_names=("a.png", "b.png"), config=HG)
+
+
+def test_int8_quantization_against_its_closed_form():
+    v = np.random.default_rng(1).normal(0.0, 0.7, (2, 3, 50, 2)).astype(np.float32)
+    v[0, 1] = 0.0
+    q, scale = ilm_lib.quantize_int8(v)
+    assert q.dtype == np.int8 and scale.shape == (2, 3) and scale.dtype == np.float32
+    # each table's largest magnitude maps to +-127; an all-zero table decodes to zeros
+    np.testing.assert_allclose(scale[1], np.abs(v[1]).max(axis=(-2, -1)) / 127.0, rtol=1e-6)
+    assert np.abs(q[1]).max(axis=(-2, -1)).tolist() == [127, 127, 127]
+    back = ilm_lib.dequantize_int8(q, scale)
+    assert back.dtype == np.float32 and not np.any(back[0, 1])
+    # rounding: within half a step of every value
+    assert np.all(np.abs(back - v) <= 0.5 * scale[..., None, None] * (1 + 1e-5))
+
+
+def test_int8_hash_tables_halve_the_stored_field_and_load_within_half_a_step(tmp_path):
+    m = _hash_ilm()
+    p16 = ilm_lib.save_ilm(tmp_path / "f16.npz", m, float16=True)
+    p8 = ilm_lib.save_ilm(tmp_path / "i8.npz", m, float16=True, hash_int8=True)
+    table = np.asarray(m.fields.params[HASH_TABLE])
+    saved = ilm_lib.map_bytes(p16) - ilm_lib.map_bytes(p8)
+    # one byte less per entry, a float32 scale more per (cluster, level)
+    expect = table.size - 4 * table.shape[0] * table.shape[1]
+    assert abs(saved - expect) < 1024
+    assert ilm_lib.stored_param_bytes(HG, True, True) == (
+        ilm_lib.stored_param_bytes(HG, True, False) - table[0].size + 4 * table.shape[1])
+    back = ilm_lib.load_ilm(p8)
+    got = np.asarray(back.fields.params[HASH_TABLE])
+    assert got.dtype == np.float32
+    t16 = table.astype(np.float16).astype(np.float32)  # float16 first, then int8 of that
+    step = np.abs(t16).max(axis=(-2, -1)) / 127.0
+    assert np.all(np.abs(got - t16) <= 0.5 * step[..., None, None] * (1 + 1e-5))
+    assert not np.any(got[1, 3])
+    # every other parameter as float16 storage gives it
+    f16 = ilm_lib.load_ilm(p16)
+    for k in back.fields.params:
+        if k != HASH_TABLE:
+            for a, b in zip(jax.tree.leaves(f16.fields.params[k]),
+                            jax.tree.leaves(back.fields.params[k]), strict=True):
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the field renders nearly as before: densities and colours of random rays
+    rays_o = jnp.zeros((64, 3)) + jnp.asarray([0.0, 0.0, -2.5])
+    d = jax.random.normal(jax.random.key(3), (64, 3)) * 0.2 + jnp.asarray([0.0, 0.0, 1.0])
+    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    r, near, far = jnp.full(64, 1e-3), jnp.ones(64), jnp.full(64, 4.0)
+    a = render_rays(f16.field(0), rays_o, d, r, near, far, None, HG)
+    b = render_rays(back.field(0), rays_o, d, r, near, far, None, HG)
+    assert float(jnp.max(jnp.abs(a["rgb"] - b["rgb"]))) < 0.05
+
+
+def test_version2_files_and_malformed_int8_tables(tmp_path):
+    import io
+    import json
+
+    m = _hash_ilm()
+    with np.load(io.BytesIO(ilm_lib.to_bytes(m, float16=True)), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["__meta__"].tobytes().decode())
+    meta["format_version"] = 2  # a map saved before int8 tables existed reads as it did
+    arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    back = ilm_lib.from_bytes(buf.getvalue(), tmp_path / "v2.npz")
+    np.testing.assert_array_equal(
+        np.asarray(back.fields.params[HASH_TABLE]),
+        np.asarray(m.fields.params[HASH_TABLE]).astype(np.float16).astype(np.float32))
+    with np.load(io.BytesIO(ilm_lib.to_bytes(m, float16=True, hash_int8=True)),
+                 allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    key = "qscale/" + HASH_TABLE
+    arrays[key] = arrays[key][:, :2]  # scales that do not fit the table
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    with pytest.raises(VrsError, match="malformed int8 parameter"):
+        ilm_lib.from_bytes(buf.getvalue(), tmp_path / "bad.npz")

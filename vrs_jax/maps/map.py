@@ -60,6 +60,10 @@ EGM_COMPRESSED = True
 # NeRF weights stored as float16 (read back as float32): renders differ from float32 weights'
 # by far less than the field's own error (README, "Map size").
 NERF_FLOAT16 = True
+# The hash tables (most of a NeRF's bytes: 1.05 of 1.09 MB in cpu-small) stored as int8, one
+# scale per cluster and level (vrs_jax.nerf.ilm.quantize_int8): the ILM at half its float16
+# size (README, "Map size": patch fidelity and recall measured on the six benchmark maps).
+NERF_HASH_INT8 = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,7 +223,8 @@ def _write_blobs(m: Map, d: Path) -> dict[str, bytes]:
             raise VrsError("the NeRF map and the EGM list different reference images", d)
         if m.ilm.config != m.config.nerf:
             raise VrsError("the NeRF was trained with another config than the map's", d)
-        blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm, float16=NERF_FLOAT16)
+        blobs[ILM_FILE] = ilm_lib.to_bytes(m.ilm, float16=NERF_FLOAT16,
+                                             hash_int8=NERF_HASH_INT8)
     for name, data in blobs.items():
         fileio.write_bytes(d / name, data)
     return blobs

@@ -25,8 +25,50 @@ from vrs_jax.nerf.config import NerfConfig
 from vrs_jax.nerf.model import Field, init_params, init_stacked_params, select_field
 
 # 2: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
-FORMAT_VERSION = 2
+# 3: hash tables may be stored as int8 with a scale per cluster and level (``qscale/...``);
+#    a version-2 file (no such scales) reads as before
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (2, 3)
 _META = "__meta__"
+_QSCALE = "qscale/"  # per-(cluster, level) scales of a parameter stored as int8
+INT8_PARAMS = ("hash_table",)  # the parameters ``hash_int8`` stores as int8
+
+
+def quantize_int8(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric int8 of a stacked hash table, one scale per table.
+
+    Args:
+      v: [..., T, F] float (e.g. [C, L, T, F]: clusters, levels, entries, features).
+    Returns:
+      (q [..., T, F] int8 in [-127, 127], scale [...] float32) with v ~= q * scale[..., None,
+      None]: each table's largest magnitude maps to 127, so nothing is clipped and the
+      rounding error is at most half a step (scale / 2).
+    """
+    v = np.asarray(v, np.float32)
+    scale = np.max(np.abs(v), axis=(-2, -1)) / 127.0
+    scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
+    q = np.clip(np.rint(v / scale[..., None, None]), -127, 127).astype(np.int8)
+    return q, scale
+
+
+def stored_param_bytes(cfg: NerfConfig, float16: bool, hash_int8: bool) -> int:
+    """Bytes one cluster's network parameters take in :func:`to_bytes` with these options
+    (array payloads only: the npz container and header are not counted)."""
+    shapes = traverse_util.flatten_dict(
+        jax.eval_shape(lambda: init_params(jax.random.key(0), cfg)), sep="/")
+    total = 0
+    for k, x in shapes.items():
+        n = int(np.prod(x.shape))
+        if hash_int8 and k.rsplit("/", 1)[-1] in INT8_PARAMS:
+            total += n + 4 * int(np.prod(x.shape[:-2]))  # int8 entries, a float32 scale each
+        else:
+            total += n * (2 if float16 else 4)
+    return total
+
+
+def dequantize_int8(q: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """[..., T, F] float32 from :func:`quantize_int8`'s (q [..., T, F] int8, scale [...])."""
+    return np.asarray(q, np.float32) * np.asarray(scale, np.float32)[..., None, None]
 
 
 @struct.dataclass
@@ -105,16 +147,22 @@ def _flatten(ilm: ILM) -> dict[str, np.ndarray]:
     return out
 
 
-def to_bytes(ilm: ILM, float16: bool = False) -> bytes:
+def to_bytes(ilm: ILM, float16: bool = False, hash_int8: bool = False) -> bytes:
     """The ILM as one npz file's bytes: every array plus a JSON header (format version, the
     full NerfConfig, the image names). ``float16``: the network parameters (MLP weights, hash
-    tables) at half precision, halving the file; :func:`from_bytes` reads them back as float32
+    tables) at half precision, halving the file; ``hash_int8``: the hash tables
+    (:data:`INT8_PARAMS`) as int8 with one float32 scale per cluster and level
+    (:func:`quantize_int8`), halving them again. :func:`from_bytes` reads both back as float32
     (rendering from the rounded parameters is measured by ``benchmarks.fidelity``)."""
     arrays = _flatten(ilm)
     if float16:
         arrays = {k: (v.astype(np.float16) if k.startswith("params/")
                       and np.issubdtype(v.dtype, np.floating) else v)
                   for k, v in arrays.items()}
+    if hash_int8:
+        for k in [k for k in arrays if k.startswith("params/")
+                  and k.rsplit("/", 1)[-1] in INT8_PARAMS]:
+            arrays[k], arrays[_QSCALE + k[len("params/"):]] = quantize_int8(arrays[k])
     meta = {"format": "vrs_jax.ilm", "format_version": FORMAT_VERSION,
             "config": ilm.config.to_dict(), "image_names": list(ilm.image_names)}
     arrays[_META] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -123,9 +171,10 @@ def to_bytes(ilm: ILM, float16: bool = False) -> bytes:
     return buf.getvalue()
 
 
-def save_ilm(path: str | Path, ilm: ILM, float16: bool = False) -> Path:
+def save_ilm(path: str | Path, ilm: ILM, float16: bool = False, hash_int8: bool = False
+             ) -> Path:
     """Write the ILM to ``path`` (.npz), atomically (see :func:`to_bytes`). Returns the path."""
-    return fileio.write_bytes(path, to_bytes(ilm, float16))
+    return fileio.write_bytes(path, to_bytes(ilm, float16, hash_int8))
 
 
 def load_ilm(path: str | Path) -> ILM:
@@ -167,15 +216,20 @@ def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
     v = fileio.format_version(meta, p, "ILM map")
     if upgrade and v in OLD_VERSIONS:
         meta["config"] = upgrade_config(v, meta.get("config") or {})
-    elif v != FORMAT_VERSION:
+    elif v not in READABLE_VERSIONS:
         raise VrsError(f"ILM map format version {v} is not supported "
                        f"(expected {FORMAT_VERSION}); retrain the map", p)
+    scales = {k[len(_QSCALE):]: arrays.pop(k) for k in list(arrays) if k.startswith(_QSCALE)}
     cfg = NerfConfig.from_dict(meta["config"], p)
     try:
+        flat = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
+        for k, sc in scales.items():  # int8 tables back to float32
+            if k not in flat or flat[k].dtype != np.int8 or sc.shape != flat[k].shape[:-2]:
+                raise VrsError(f"ILM map has a malformed int8 parameter {k!r}", p)
+            flat[k] = dequantize_int8(flat[k], sc)
         params = traverse_util.unflatten_dict(
-            {k[len("params/"):]: jnp.asarray(v, jnp.float32 if np.issubdtype(
-                v.dtype, np.floating) else v.dtype) for k, v in arrays.items()
-             if k.startswith("params/")}, sep="/")
+            {k: jnp.asarray(v, jnp.float32 if np.issubdtype(v.dtype, np.floating) else v.dtype)
+             for k, v in flat.items()}, sep="/")
         fields = Field(params=params, center=jnp.asarray(arrays["center"]),
                        scale=jnp.asarray(arrays["scale"]),
                        background=jnp.asarray(arrays["background"]))
