@@ -59,7 +59,8 @@ SERIES_TEXELS_PER_M = 96.0
 SERIES_SUPERSAMPLE = 1
 # Real scenes of the series: the phone walk (302 frames, every 10th a query).
 REAL_SERIES = {
-    "phone_walk": common.SceneSpec("phone_walk", "nerf", ("phone_walk",), 10, None,
+    "phone_walk": common.SceneSpec("phone_walk", "nerf", ("phone_walk",),
+                                   (("query_every", 10),), None,
                                    "phone walk, 302 frames, every 10th a query"),
 }
 # The paper's cluster density: Aachen's 4,328 reference images in 16 NeRF clusters.
@@ -370,7 +371,7 @@ def series_scenes(args, log: Callable[[str], None] = print) -> list[SeriesScene]
             raise VrsError(f"unknown real series scene {name!r}; choose from "
                            f"{', '.join(REAL_SERIES)}")
         spec = REAL_SERIES[name]
-        opts = {"query_every": spec.query_every}
+        opts = spec.reader_options
         if name in given:  # measured as it is: the dataset is not read
             out.append(SeriesScene(name, None, None, given[name], True, opts))
             continue

@@ -124,3 +124,26 @@ def test_cluster_counts():
     assert map_scale.cluster_counts(16, 1) == {"one": 1, "paper": 1, "per_room": 1}
     assert map_scale.cluster_counts(1024, 64) == {"one": 1, "paper": 4, "per_room": 64}
     assert map_scale.cluster_counts(271, None) == {"one": 1, "paper": 1}
+
+
+def test_real_series_scene_carries_its_split(tmp_path):
+    """The phone walk's series point: its reader options are the split (every 10th frame a
+    query), whether its EGM folder is given or built from the data (a SceneSpec built with
+    positional fields once read a missing attribute here and the series crashed after its
+    synthetic scenes)."""
+    from benchmarks import common
+
+    args = map_size.build_parser().parse_args(
+        ["--series", "", "--series-real", "phone_walk", "--series-egm",
+         f"phone_walk={tmp_path / 'egm'}", "--work", str(tmp_path / "work")])
+    (given,) = map_scale.series_scenes(args, log=lambda s: None)
+    assert given.given and given.scene is None and given.source_options == {"query_every": 10}
+    root = common.default_data_root() / "phone_walk"
+    if not root.exists():
+        pytest.skip(f"phone walk data not found at {root}")
+    args = map_size.build_parser().parse_args(
+        ["--series", "", "--series-real", "phone_walk", "--work", str(tmp_path / "work")])
+    (built,) = map_scale.series_scenes(args, log=lambda s: None)
+    assert not built.given and built.source_options == {"query_every": 10}
+    n = len(built.scene)
+    assert n > 250 and int(np.sum(~np.asarray(built.scene.is_query, bool))) < n
