@@ -80,7 +80,7 @@ def test_interpolation_matches_numpy_reference():
 
 
 def test_corner_indices_match_the_reference_index_at_full_scale():
-    # cpu-small's levels (dense 16 and 22, hashed up to 1024 with 2^14 entries): products of
+    # cpu-small's levels with a 2^14 table (dense 16 and 22, hashed up to 1024): products of
     # large coordinates and the primes wrap in uint32, as Instant-NGP's hash does
     res = H.level_resolutions(16, 16, 1024)
     T = 1 << 14
