@@ -177,6 +177,7 @@ def test_named_config_comments_match_values():
     assert (cpu.egm.retrieval.n_words, cpu.egm.retrieval.local_dim) == (32, 32)  # 1024-D
     assert (cpu.nerf.encoding, cpu.nerf.net_depth, cpu.nerf.net_width,
             cpu.nerf.num_samples_coarse, cpu.nerf.max_steps) == ("hashgrid", 2, 64, 32, 4000)
+    assert (cpu.nerf.hash_levels, cpu.nerf.hash_log2_table) == (16, 15)  # int8: 1.08 MB
     assert (test.egm.features.keypoints.max_keypoints, test.egm.k_max,
             test.features.patches.size, test.nerf.net_width, test.nerf.max_steps) == (
         128, 64, 9, 64, 800)
