@@ -363,3 +363,19 @@ def test_version2_files_and_malformed_int8_tables(tmp_path):
     np.savez(buf, **arrays)
     with pytest.raises(VrsError, match="malformed int8 parameter"):
         ilm_lib.from_bytes(buf.getvalue(), tmp_path / "bad.npz")
+    del arrays[key]  # an int8 table without its scales
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    with pytest.raises(VrsError, match="no scales"):
+        ilm_lib.from_bytes(buf.getvalue(), tmp_path / "bad.npz")
+
+
+def test_int8_keeps_a_diverged_table_non_finite():
+    """A table holding NaN must not read back as finite int8 garbage: loading refuses a
+    non-finite field (maps.map), and that check must still see it."""
+    v = np.random.default_rng(2).normal(0.0, 0.5, (1, 2, 8, 2)).astype(np.float32)
+    v[0, 1, 3, 0] = np.nan
+    q, scale = ilm_lib.quantize_int8(v)
+    back = ilm_lib.dequantize_int8(q, scale)
+    assert np.all(np.isfinite(back[0, 0])) and np.all(np.isnan(back[0, 1]))
+    np.testing.assert_allclose(back[0, 0], v[0, 0], atol=0.5 * float(scale[0, 0]) * 1.00001)

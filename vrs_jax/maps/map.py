@@ -60,9 +60,10 @@ EGM_COMPRESSED = True
 # NeRF weights stored as float16 (read back as float32): renders differ from float32 weights'
 # by far less than the field's own error (README, "Map size").
 NERF_FLOAT16 = True
-# The hash tables (most of a NeRF's bytes: 1.05 of 1.09 MB in cpu-small) stored as int8, one
-# scale per cluster and level (vrs_jax.nerf.ilm.quantize_int8): the ILM at half its float16
-# size (README, "Map size": patch fidelity and recall measured on the six benchmark maps).
+# The hash tables (most of a NeRF's bytes: cpu-small's 16 x 2^15 x 2 entries take 1.05 of its
+# 1.08 MB) stored as int8, one scale per cluster and level (vrs_jax.nerf.ilm.quantize_int8):
+# the ILM at about half its float16 size, patch fidelity and recall unchanged on the six
+# benchmark maps (README, "The NeRF at half its bytes").
 NERF_HASH_INT8 = True
 
 

@@ -22,7 +22,7 @@ from vrs_jax import fileio
 from vrs_jax.errors import VrsError
 from vrs_jax.nerf.clusters import cluster_cameras
 from vrs_jax.nerf.config import NerfConfig
-from vrs_jax.nerf.model import Field, init_params, init_stacked_params, select_field
+from vrs_jax.nerf.model import HASH_TABLE, Field, init_params, init_stacked_params, select_field
 
 # 2: NerfConfig gained cluster_method (K-means or a uniform grid of the cameras)
 # 3: hash tables may be stored as int8 with a scale per cluster and level (``qscale/...``);
@@ -31,7 +31,7 @@ FORMAT_VERSION = 3
 READABLE_VERSIONS = (2, 3)
 _META = "__meta__"
 _QSCALE = "qscale/"  # per-(cluster, level) scales of a parameter stored as int8
-INT8_PARAMS = ("hash_table",)  # the parameters ``hash_int8`` stores as int8
+INT8_PARAMS = (HASH_TABLE,)  # the parameters ``hash_int8`` stores as int8
 
 
 def quantize_int8(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,13 +42,17 @@ def quantize_int8(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns:
       (q [..., T, F] int8 in [-127, 127], scale [...] float32) with v ~= q * scale[..., None,
       None]: each table's largest magnitude maps to 127, so nothing is clipped and the
-      rounding error is at most half a step (scale / 2).
+      rounding error is at most half a step (scale / 2). A table holding a non-finite value
+      gets a NaN scale (q 0), so that it decodes to NaN and loading refuses the diverged
+      field as it refuses a float one, instead of reading back finite garbage.
     """
     v = np.asarray(v, np.float32)
+    finite = np.all(np.isfinite(v), axis=(-2, -1))
+    v = np.where(finite[..., None, None], v, 0.0)
     scale = np.max(np.abs(v), axis=(-2, -1)) / 127.0
-    scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
+    scale = np.where(scale > 0, scale, 1.0)
     q = np.clip(np.rint(v / scale[..., None, None]), -127, 127).astype(np.int8)
-    return q, scale
+    return q, np.where(finite, scale, np.nan).astype(np.float32)
 
 
 def stored_param_bytes(cfg: NerfConfig, float16: bool, hash_int8: bool) -> int:
@@ -227,6 +231,10 @@ def from_bytes(raw: bytes, p: Path, upgrade: bool = False) -> ILM:
             if k not in flat or flat[k].dtype != np.int8 or sc.shape != flat[k].shape[:-2]:
                 raise VrsError(f"ILM map has a malformed int8 parameter {k!r}", p)
             flat[k] = dequantize_int8(flat[k], sc)
+        unscaled = [k for k, v in flat.items() if v.dtype == np.int8]
+        if unscaled:  # an int8 table without its scales: not a field we can read back
+            raise VrsError(f"ILM map has a malformed int8 parameter {unscaled[0]!r} "
+                           "(no scales)", p)
         params = traverse_util.unflatten_dict(
             {k: jnp.asarray(v, jnp.float32 if np.issubdtype(v.dtype, np.floating) else v.dtype)
              for k, v in flat.items()}, sep="/")
